@@ -1,0 +1,39 @@
+# Every target creates .venv and installs what it needs by itself (fresh machine, CI).
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test test-slow bench lint clean
+
+install: $(STAMP)
+
+# torch is pinned: 2.13.0 is a CPU build on these machines, an unpinned torch pulls CUDA.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[train,dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/udan-eval --policy oracle --env arena/find_water --agents 1-5 --obstacles 0-9 --episodes 20
+	$(VENV)/bin/udan-eval --policy random --env arena/find_water --agents 1-5 --obstacles 0-9 --episodes 20
+
+test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+bench: $(STAMP)
+	@mkdir -p out/bench
+	@for b in bench/*.py; do name=$$(basename $$b .py); echo "== $$b"; \
+	  $(PY) $$b > out/bench/$$name.json || exit 1; cat out/bench/$$name.json; done
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .ruff_cache

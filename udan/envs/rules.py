@@ -1,0 +1,90 @@
+"""What a move does: the grid world rules shared by training, the edge safety filter and HIL.
+
+Every function here is batched over arenas (axis 0) and agents (axis 1), numpy only, so the
+vectorised training core, the edge runtime (one arena) and the HIL world all run the same code.
+
+Positions are ``(row, col)`` integer pairs; row 0 is the top of the camera image.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ACTIONS: tuple[str, ...] = ("up", "down", "left", "right", "wait")
+UP, DOWN, LEFT, RIGHT, WAIT = range(len(ACTIONS))
+N_ACTIONS = len(ACTIONS)
+
+#: (d_row, d_col) per action, indexed by action id.
+ACTION_DELTAS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]], dtype=np.int64)
+
+# Static cell codes of an arena layout.
+FREE, WALL, OBSTACLE, WATER = 0, 1, 2, 3
+
+
+def in_bounds(pos: np.ndarray, height: int, width: int) -> np.ndarray:
+    """True where ``pos[..., :]`` lies inside a ``height`` x ``width`` grid."""
+    return (pos[..., 0] >= 0) & (pos[..., 0] < height) & (pos[..., 1] >= 0) & (pos[..., 1] < width)
+
+
+def intended_cells(pos: np.ndarray, actions: np.ndarray, passable: np.ndarray) -> np.ndarray:
+    """The cell each agent would enter if alone: walls, obstacles and the arena edge block.
+
+    ``pos`` (B, N, 2), ``actions`` (B, N), ``passable`` (B, H, W) bool.
+    """
+    _, height, width = passable.shape
+    dest = pos + ACTION_DELTAS[actions]
+    ok = in_bounds(dest, height, width)
+    rows = np.clip(dest[..., 0], 0, height - 1)
+    cols = np.clip(dest[..., 1], 0, width - 1)
+    batch = np.arange(pos.shape[0])[:, None]
+    ok &= passable[batch, rows, cols]
+    return np.where(ok[..., None], dest, pos)
+
+
+def resolve_moves(
+    pos: np.ndarray, actions: np.ndarray, passable: np.ndarray, present: np.ndarray
+) -> np.ndarray:
+    """Simultaneous moves with deterministic conflict rules; returns the new positions.
+
+    - a move off the arena or into an impassable cell is a wait;
+    - two or more agents claiming one cell all wait (no priority, so no agent id bias);
+    - a move into the cell of an agent that stays is a wait (resolved to a fixed point);
+    - two agents swapping cells both wait (cars cannot pass through each other);
+    - following (entering a cell its occupant leaves in the same step) is allowed, and so is a
+      rotation of three or more agents, since no two cars are ever in one cell.
+
+    Absent agents (``present`` False) neither move nor block.
+    """
+    n_batch, n_agents = actions.shape
+    _, height, width = passable.shape
+    cells = height * width
+    dest = intended_cells(pos, actions, passable)
+    offset = (np.arange(n_batch) * cells)[:, None]
+    cur = (pos[..., 0] * width + pos[..., 1] + offset)[present]
+    dst = (dest[..., 0] * width + dest[..., 1] + offset)[present]
+    if cur.size == 0:
+        return pos.copy()
+    occupant = np.full(n_batch * cells, -1, dtype=np.int64)
+    occupant[cur] = np.arange(cur.size)
+    moving = dst != cur
+    while True:
+        claims = np.bincount(dst, minlength=n_batch * cells)
+        blocked = moving & (claims[dst] > 1)
+        other = occupant[dst]
+        has_other = moving & (other >= 0)
+        swap = np.zeros_like(moving)
+        swap[has_other] = dst[other[has_other]] == cur[has_other]
+        blocked |= swap
+        if not blocked.any():
+            break
+        dst = np.where(blocked, cur, dst)
+        moving &= ~blocked
+    out = pos.copy()
+    local = dst - np.repeat(offset[:, 0], present.sum(axis=1))
+    out[present] = np.stack([local // width, local % width], axis=-1)
+    return out
+
+
+def manhattan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Grid distance between positions, broadcast over leading axes."""
+    return np.abs(a[..., 0] - b[..., 0]) + np.abs(a[..., 1] - b[..., 1])
