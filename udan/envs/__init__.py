@@ -1,4 +1,4 @@
-"""Environment registry: ``make(name, ...)`` for a PettingZoo ParallelEnv, ``make_vec`` for B at once.
+"""Environment registry: ``make(name)`` gives a PettingZoo ParallelEnv, ``make_vec`` B at once.
 
 Backends are imported lazily, so the arena core (numpy only) never needs pettingzoo or magent2
 unless those envs are asked for.

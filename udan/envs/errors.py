@@ -12,7 +12,7 @@ class UnknownEnvError(EnvConfigError):
 
 
 def parse_range(value: int | str | tuple[int, int] | list[int], what: str) -> tuple[int, int]:
-    """``3``, ``"1-5"``, ``"4"`` or ``(1, 5)`` -> ``(lo, hi)``; rejects empty, inverted, negative."""
+    """``3``, ``"1-5"`` or ``(1, 5)`` -> ``(lo, hi)``; rejects empty, inverted, negative."""
     if isinstance(value, bool):
         raise EnvConfigError(f"{what}: expected a count or a range like 1-5, got {value!r}")
     if isinstance(value, int):

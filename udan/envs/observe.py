@@ -21,8 +21,12 @@ OBS_SPEC_VERSION = 1
 CHANNELS: tuple[str, ...] = ("blocked", "agents", "objective")
 BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT = 1, 2, 4
 
-FEATURES: tuple[str, ...] = ("row", "col", *(f"last_action_{i}" for i in range(N_ACTIONS)),
-                             "last_reward")
+FEATURES: tuple[str, ...] = (
+    "row",
+    "col",
+    *(f"last_action_{i}" for i in range(N_ACTIONS)),
+    "last_reward",
+)
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,7 @@ def resolve_moves(
 
     Absent agents (``present`` False) neither move nor block.
     """
-    n_batch, n_agents = actions.shape
+    n_batch = actions.shape[0]
     _, height, width = passable.shape
     cells = height * width
     dest = intended_cells(pos, actions, passable)

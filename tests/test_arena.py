@@ -1,0 +1,181 @@
+"""The vectorised arena core: layouts, rewards, churn, registry and bad input."""
+
+import warnings
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+import udan.envs as envs
+from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.rules import FREE, OBSTACLE, WAIT, WATER
+
+
+def fresh(task, batch=64, seed=0, **kw):
+    env = ArenaBatch(ArenaConfig(task=task, **kw), batch=batch, seed=seed)
+    env.reset()
+    return env
+
+
+@pytest.mark.parametrize("task", ["find_water", "surround"])
+def test_counts_are_drawn_within_the_ranges(task):
+    env = fresh(task, batch=400, agents=(2, 4), obstacles=(3, 7))
+    n = env.present.sum(1)
+    m = (env.layout == OBSTACLE).sum((1, 2))
+    assert n.min() == 2 and n.max() == 4
+    assert m.min() == 3 and m.max() == 7
+    # agents stand on free cells, one per cell
+    b, s = np.nonzero(env.present)
+    assert (env.layout[b, env.pos[b, s, 0], env.pos[b, s, 1]] == FREE).all()
+    for i in range(env.batch):
+        cells = {tuple(p) for p in env.pos[i, env.present[i]].tolist()}
+        assert len(cells) == n[i]
+
+
+def test_find_water_layout():
+    env = fresh("find_water", batch=200)
+    for b in range(env.batch):
+        n = env.present[b].sum()
+        row0 = env.layout[b, 0]
+        src = np.flatnonzero(row0 == WATER)
+        assert len(src) == n and (np.diff(src) == 1).all(), "a contiguous row of N sources"
+        for end in (src[0] - 1, src[-1] + 1):
+            if 0 <= end < 9:
+                assert row0[end] != FREE, "sources walled at both ends"
+        assert (env.layout[b, 1] == FREE).all(), "the drinking row is open"
+        obst_rows = np.nonzero(env.layout[b] == OBSTACLE)[0]
+        assert ((obst_rows >= 2) & (obst_rows <= 4)).all()
+        assert (env.pos[b, env.present[b], 0] >= 5).all(), "agents start in the start zone"
+
+
+def test_find_water_pays_one_per_step_in_front_of_a_source():
+    env = fresh("find_water", batch=1, agents=(2, 2), obstacles=(0, 0))
+    src = np.flatnonzero(env.layout[0, 0] == WATER)
+    env.pos[0] = [[1, src[0]], [2, src[1]]]
+    _, reward, _ = env.step(np.full((1, 2), WAIT))
+    assert reward[0].tolist() == [1.0, 0.0]
+    env.pos[0, 0] = [1, 0]  # front row, but no source above (walled or bare)
+    _, reward, _ = env.step(np.full((1, 2), WAIT))
+    assert reward[0, 0] == 0.0
+
+
+def test_surround_scores_adjacency_and_penalises_every_fourth_step():
+    env = fresh("surround", batch=1, agents=(2, 2), obstacles=(0, 0))
+    env.layout[0] = FREE
+    env.layout[0, 1, 0] = OBSTACLE  # the target in the corner, pinned by agent 0 and a wall
+    env.target[0] = [0, 0]
+    env.pos[0] = [[0, 1], [8, 8]]
+    rewards = [env.step(np.full((1, 2), WAIT))[1][0].tolist() for _ in range(8)]
+    assert env.target[0].tolist() == [0, 0]
+    assert [a for a, _ in rewards] == [1.0] * 8
+    assert [b for _, b in rewards] == [0, 0, 0, -1, 0, 0, 0, -1]
+    assert env.target_score[0] == -8
+
+
+def test_surround_target_flees_and_a_follower_stays_adjacent():
+    env = fresh("surround", batch=1, agents=(1, 1), obstacles=(0, 0))
+    env.target[0] = [4, 4]
+    env.pos[0, 0] = [4, 3]
+    assert env.flee_scores()[0].argmax() != WAIT
+    _, r, _ = env.step(np.array([[3]]))  # right: into the cell the target leaves
+    assert env.pos[0, 0].tolist() == [4, 4]
+    assert env.target[0].tolist() != [4, 4]
+    assert r[0, 0] == 1.0
+
+
+def test_episode_ends_at_max_steps_and_reset_is_selective():
+    env = fresh("find_water", batch=3, max_steps=5)
+    for t in range(5):
+        _, _, done = env.step(np.full((3, 5), WAIT))
+        assert done.all() == (t == 4)
+    before = env.pos.copy()
+    env.reset(np.array([True, False, False]))
+    assert (env.t == [0, 5, 5]).all()
+    assert (env.pos[1:] == before[1:]).all()
+
+
+def test_same_seed_same_episodes():
+    a, b = fresh("surround", seed=7), fresh("surround", seed=7)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        act = rng.integers(0, 5, (64, 5))
+        oa, ra, _ = a.step(act)
+        ob, rb, _ = b.step(act)
+        assert (oa == ob).all() and (ra == rb).all()
+
+
+def test_churn_changes_membership_with_fresh_ids():
+    env = fresh("surround", batch=50, agents=(1, 5), churn=0.5)
+    seen_join = seen_leave = False
+    for _ in range(40):
+        env.step(np.random.default_rng(0).integers(0, 5, (50, 5)))
+        seen_join |= bool(env.joined.any())
+        seen_leave |= bool(env.left.any())
+        assert (env.present.sum(1) >= 1).all() and (env.present.sum(1) <= 5).all()
+        assert not (env.joined & ~env.present).any()
+        assert not (env.left & env.present).any()
+    assert seen_join and seen_leave
+    for b in range(50):
+        ids = env.agent_id[b, env.present[b]]
+        assert len(set(ids.tolist())) == len(ids)
+
+
+def test_global_state_and_render():
+    env = fresh("find_water", batch=2)
+    state = env.global_state()
+    assert state.shape == (2, 3 * 81)
+    assert state[:, 81:162].sum(1).tolist() == env.present.sum(1).tolist()
+    picture = env.render(0)
+    assert picture.count("~") == env.present[0].sum() and len(picture.splitlines()) == 9
+
+
+@pytest.mark.parametrize("name", [n for n in envs.env_names() if n.startswith("arena/")])
+@pytest.mark.parametrize("churn", [0.0, 0.3])
+def test_parallel_api(name, churn):
+    env = envs.make(name, churn=churn, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # N differs per episode, so possible_agents always holds names that never appeared
+        warnings.filterwarnings("ignore", message="No agents present but not all possible_agents")
+        parallel_api_test(env, num_cycles=120)
+
+
+def test_parallel_env_matches_the_core():
+    env = envs.make("arena/find_water", seed=3)
+    obs, _ = env.reset(seed=3)
+    core = envs.make_vec("arena/find_water", batch=1, seed=3)
+    core_obs = core.reset()
+    assert [f"agent_{i}" for i in range(core.present[0].sum())] == env.agents
+    for i, agent in enumerate(env.agents):
+        assert (obs[agent] == core_obs[0, i]).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"agents": (0, 3)}, "at least 1 agent"),
+        ({"agents": (4, 2)}, "inverted"),
+        ({"agents": "a-b"}, "range like 1-5"),
+        ({"agents": (1, 10)}, "water sources"),
+        ({"obstacles": (0, 28)}, "obstacle zone"),
+        ({"task": "surround", "agents": (1, 40), "obstacles": (0, 41)}, "exceed the 81 cells"),
+        ({"churn": 2.0}, "probability"),
+        ({"task": "fly"}, "unknown arena task"),
+    ],
+)
+def test_bad_config_is_refused_with_a_clear_message(kwargs, message):
+    with pytest.raises(envs.EnvConfigError, match=message):
+        ArenaConfig(**{"task": "find_water", **kwargs})
+
+
+def test_unknown_env_names_the_known_ones():
+    with pytest.raises(envs.UnknownEnvError, match=r"known: .*arena/find_water"):
+        envs.make("arena/nope")
+    with pytest.raises(envs.UnknownEnvError, match="no vectorised form"):
+        envs.make_vec("magent/tiger", batch=2)
+
+
+def test_bad_actions_are_refused():
+    env = fresh("find_water", batch=1)
+    with pytest.raises(ValueError, match="actions must be in"):
+        env.step(np.full((1, 5), 7))

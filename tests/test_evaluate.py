@@ -1,0 +1,90 @@
+"""udan-eval: paper-style tables for the reference policies, and its bad-input contract."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from udan.evaluate import evaluate, main
+from udan.policies import OraclePolicy, RandomPolicy
+
+EVAL = [str(Path(sys.executable).with_name("udan-eval"))]
+
+
+def test_table_has_a_row_per_obstacle_count_and_a_column_per_agent_count(capsys, tmp_path):
+    csv_path = tmp_path / "cells.csv"
+    code = main(
+        [
+            "--policy",
+            "random",
+            "--agents",
+            "1-3",
+            "--obstacles",
+            "0-2",
+            "--episodes",
+            "3",
+            "--csv",
+            str(csv_path),
+        ]
+    )
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "| obstacles \\ agents | 1 | 2 | 3 | mean |" in out
+    assert all(f"\n| {m} | " in out for m in range(3))
+    assert len(csv_path.read_text().splitlines()) == 1 + 9
+
+
+def test_same_seed_same_layouts_for_every_policy():
+    a = evaluate("arena/find_water", OraclePolicy(), (2, 2), (3, 3), 5, seed=1)
+    b = evaluate("arena/find_water", OraclePolicy(), (2, 2), (3, 3), 5, seed=1)
+    r = evaluate("arena/find_water", RandomPolicy(), (2, 2), (3, 3), 5, seed=1)
+    assert a == b
+    assert a[0].agent_score > r[0].agent_score
+
+
+def test_surround_prints_the_target_table_too(capsys):
+    assert (
+        main(
+            [
+                "--policy",
+                "oracle",
+                "--env",
+                "arena/surround",
+                "--agents",
+                "2",
+                "--obstacles",
+                "1",
+                "--episodes",
+                "2",
+            ]
+        )
+        == 0
+    )
+    assert "target score" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--agents", "5-1"], "inverted range"),
+        (["--agents", "0-2"], "at least 1 agent"),
+        (["--agents", "1-12"], "water sources"),
+        (["--obstacles", "0-40"], "obstacle zone"),
+        (["--env", "arena/nope"], "unknown"),
+        (["--env", "magent/tiger"], "arena tasks only"),
+        (["--episodes", "0"], "--episodes"),
+        (["--csv", "/nonexistent/dir/x.csv"], "does not exist"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_code_2(args, message):
+    proc = subprocess.run(
+        [*EVAL, "--policy", "random", "--episodes", "1", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
