@@ -1,0 +1,60 @@
+"""Leaders, groups and bridge rounds (numpy; shared by training and the edge)."""
+
+import numpy as np
+
+from udan.envs.grouping import (
+    communication_matrix,
+    form_groups,
+    group_rounds,
+    hypothetical_groups,
+)
+
+
+def test_a_leader_groups_with_its_k_minus_1_nearest():
+    pos = np.array([[0, 0], [0, 1], [5, 5], [0, 3], [8, 8]])
+    present = np.ones(5, bool)
+    prob = np.array([0.9, 0.1, 0.2, 0.3, 0.1])
+    groups = form_groups(pos, present, prob, k=3, threshold=0.5)
+    assert groups.tolist() == [[0, 1, 3]]
+
+
+def test_leaders_ordered_by_probability_and_absent_agents_ignored():
+    pos = np.array([[0, 0], [0, 1], [0, 2], [7, 7], [7, 8]])
+    present = np.array([True, True, True, False, True])
+    prob = np.array([0.6, 0.1, 0.9, 0.99, 0.7])
+    groups = form_groups(pos, present, prob, k=2, threshold=0.5)
+    assert groups.tolist() == [[2, 1], [4, 2], [0, 1]]
+
+
+def test_no_leader_or_too_few_agents_means_no_groups():
+    pos = np.array([[0, 0], [1, 1]])
+    assert form_groups(pos, np.ones(2, bool), np.array([0.1, 0.2]), 3, 0.5).shape == (0, 2)
+    assert form_groups(pos, np.array([True, False]), np.ones(2), 3, 0.5).shape[0] == 0
+
+
+def test_groups_shrink_to_the_fleet():
+    pos = np.array([[0, 0], [4, 4]])
+    groups = form_groups(pos, np.ones(2, bool), np.array([0.9, 0.1]), k=4, threshold=0.5)
+    assert groups.tolist() == [[0, 1]]
+
+
+def test_rounds_are_disjoint_and_keep_each_agents_group_order():
+    groups = np.array([[0, 1, 2], [3, 2, 4], [5, 6, 7], [2, 8, 9], [4, 5, 9]])
+    rounds = group_rounds(groups)
+    seen_round = {}
+    for r, idx in enumerate(rounds):
+        members = groups[idx].ravel()
+        assert len(set(members.tolist())) == members.size, "a round's groups share an agent"
+        for g in idx:
+            for m in groups[g]:
+                assert seen_round.get(m, -1) < r
+                seen_round[m] = r
+    assert [i.tolist() for i in rounds] == [[0, 2], [1], [3], [4]]
+
+
+def test_hypothetical_groups_and_the_communication_matrix():
+    pos = np.array([[0, 0], [0, 1], [0, 5]])
+    groups = hypothetical_groups(pos, np.ones(3, bool), k=2)
+    assert sorted(g[0] for g in groups) == [0, 1, 2] and len(groups) == 3
+    c = communication_matrix(np.array([[0, 1]]), 3)
+    assert c.tolist() == [[True, True, False], [True, True, False], [False, False, False]]

@@ -1,0 +1,64 @@
+"""Who talks to whom: leaders, their groups, and the rounds that make bridges work (numpy only).
+
+Training and the edge runtime form groups with this same code: every ``interval`` steps the
+agents whose leader probability exceeds ``threshold`` become leaders, and each leader groups
+itself with its ``k - 1`` nearest agents (grid distance, ties by slot). An agent picked by
+several leaders belongs to several groups and bridges them: paper eqs. (2)-(3) update its
+encoding group after group, so groups are split into *rounds* of disjoint groups, processed in
+order of the leaders' probability, highest first.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def form_groups(
+    pos: np.ndarray, present: np.ndarray, leader_prob: np.ndarray, k: int, threshold: float
+) -> np.ndarray:
+    """Groups of one arena as a (G, min(k, n)) array of slots, leader first then by distance.
+
+    ``pos`` (N, 2), ``present`` (N,), ``leader_prob`` (N,). Leaders are ordered by
+    probability (highest first), which is also the order bridges are updated in.
+    """
+    slots = np.flatnonzero(present)
+    size = min(k, slots.size)
+    leaders = slots[leader_prob[slots] > threshold]
+    if size < 2 or leaders.size == 0:
+        return np.zeros((0, size), dtype=np.int64)
+    leaders = leaders[np.argsort(-leader_prob[leaders], kind="stable")]
+    dist = np.abs(pos[leaders, None, :] - pos[None, slots, :]).sum(-1)  # (L, n)
+    dist[np.arange(leaders.size), np.searchsorted(slots, leaders)] = -1  # the leader itself first
+    nearest = np.argsort(dist, axis=1, kind="stable")[:, :size]
+    return slots[nearest]
+
+
+def hypothetical_groups(pos: np.ndarray, present: np.ndarray, k: int) -> np.ndarray:
+    """Every present agent as a leader with its k-1 nearest (the leader classifier's targets)."""
+    return form_groups(pos, present, np.ones(len(present)), k, threshold=0.0)
+
+
+def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
+    """Split groups (in priority order) into rounds of disjoint groups; returns group indices.
+
+    A group goes to the first round after the last round that holds any of its members, so an
+    agent's groups are processed in priority order and each round can be one batched call.
+    """
+    last_round: dict[int, int] = {}
+    rounds: list[list[int]] = []
+    for g, members in enumerate(groups.tolist()):
+        r = max((last_round.get(m, -1) for m in members), default=-1) + 1
+        if r == len(rounds):
+            rounds.append([])
+        rounds[r].append(g)
+        for m in members:
+            last_round[m] = r
+    return [np.array(r, dtype=np.int64) for r in rounds]
+
+
+def communication_matrix(groups: np.ndarray, n: int) -> np.ndarray:
+    """The paper's C (N x N, bool): True where two agents share a group."""
+    c = np.zeros((n, n), dtype=bool)
+    for members in groups:
+        c[np.ix_(members, members)] = True
+    return c

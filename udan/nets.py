@@ -1,0 +1,119 @@
+"""GCTDE-UDAN networks (paper §IV-A, Fig. 2): one set of weights shared by every agent.
+
+- :class:`AgentEncoder`: observation -> MLP -> LSTM cell -> feature ``l_i`` (state per agent).
+- :class:`LeaderScorer`: self-attention over the agents' features (eq. 1), a fully connected
+  layer and a sigmoid -> leader probability ``p_i`` (eqs. 5-6).
+- :class:`GroupComm`: a bidirectional LSTM over each group's members gives each a message; the
+  groups of one round are disjoint and run as one batch, rounds run in order so an agent in
+  several groups carries what it learnt in one group into the next (eqs. 2-3).
+- :class:`QHead`: ``Q(o_i, message_i)``; with a zero message it is ``Q_s`` (eq. 4).
+- :class:`SetMixer`: monotonic mixing of any number of agent Qs without a global state.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class AgentEncoder(nn.Module):
+    """Per-agent MLP + LSTM cell; the recurrent state is kept per agent id by the caller."""
+
+    def __init__(self, obs_dim: int, hidden: int) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(
+            nn.Linear(obs_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
+        self.cell = nn.LSTMCell(hidden, hidden)
+        self.hidden = hidden
+
+    def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        zeros = torch.zeros(n, self.hidden)
+        return zeros, zeros.clone()
+
+    def forward(
+        self, obs: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        h, c = self.cell(self.mlp(obs), state)
+        return h, (h, c)
+
+
+class LeaderScorer(nn.Module):
+    """Scaled dot-product self-attention over the present agents of an arena, FC, sigmoid."""
+
+    def __init__(self, hidden: int, attn_dim: int) -> None:
+        super().__init__()
+        self.query = nn.Linear(hidden, attn_dim)
+        self.key = nn.Linear(hidden, attn_dim)
+        self.value = nn.Linear(hidden, attn_dim)
+        self.out = nn.Linear(attn_dim + hidden, 1)
+
+    def forward(self, feats: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``feats`` (B, N, H), ``mask`` (B, N) bool -> leader logits (B, N); padded slots -inf."""
+        q, k, v = self.query(feats), self.key(feats), self.value(feats)
+        scores = q @ k.transpose(1, 2) / k.shape[-1] ** 0.5
+        scores = scores.masked_fill(~mask[:, None, :], float("-inf"))
+        attn = torch.softmax(scores, dim=-1).nan_to_num(0.0)  # rows of padded slots are all -inf
+        logits = self.out(torch.cat([attn @ v, feats], dim=-1)).squeeze(-1)
+        return logits.masked_fill(~mask, float("-inf"))
+
+
+class GroupComm(nn.Module):
+    """Bidirectional LSTM over each group's members (leader first), round after round."""
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.lstm = nn.LSTM(hidden, hidden // 2, batch_first=True, bidirectional=True)
+        self.proj = nn.Linear(2 * (hidden // 2), hidden)
+
+    def forward(self, feats: torch.Tensor, rounds: list[torch.Tensor]) -> torch.Tensor:
+        """``feats`` (M, H) of all agents; ``rounds``: per round a (G, s) tensor of member rows.
+
+        Returns messages (M, H): zero for agents in no group. Within a round the groups are
+        disjoint, so one batched LSTM call updates them all.
+        """
+        enc = feats
+        grouped = torch.zeros(feats.shape[0], dtype=torch.bool)
+        for members in rounds:
+            if members.numel() == 0:
+                continue
+            out, _ = self.lstm(enc[members])
+            enc = enc.index_put((members.reshape(-1),), self.proj(out).reshape(-1, enc.shape[-1]))
+            grouped[members.reshape(-1)] = True
+        return torch.where(grouped[:, None], enc, torch.zeros_like(enc))
+
+
+class QHead(nn.Module):
+    """Local action values from an agent's feature and its message (zero message -> Q_s)."""
+
+    def __init__(self, hidden: int, n_actions: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(2 * hidden, hidden), nn.ReLU(), nn.Linear(hidden, n_actions)
+        )
+
+    def forward(self, feats: torch.Tensor, message: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([feats, message], dim=-1))
+
+
+class SetMixer(nn.Module):
+    """``Q_tot = |w2| . elu(sum_i |W1(l_i)| Q_i + b1) + b2`` over the present agents.
+
+    Non-negative weights and a monotonic activation make Q_tot monotonic in every Q_i (the QMIX
+    condition behind eq. 21); the sum over agents takes any N and padded agents add nothing.
+    Weights come from each agent's own feature instead of a global state (paper §IV-A-3).
+    """
+
+    def __init__(self, hidden: int, mix_dim: int) -> None:
+        super().__init__()
+        self.w1 = nn.Linear(hidden, mix_dim)
+        self.b1 = nn.Parameter(torch.zeros(mix_dim))
+        self.w2 = nn.Parameter(torch.rand(mix_dim) * 0.1)
+        self.b2 = nn.Parameter(torch.zeros(1))
+
+    def forward(self, q: torch.Tensor, feats: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``q`` (B, N), ``feats`` (B, N, H), ``mask`` (B, N) -> Q_tot (B,)."""
+        w1 = self.w1(feats).abs() * mask[..., None]
+        hidden = F.elu((w1 * q.masked_fill(~mask, 0.0)[..., None]).sum(1) + self.b1)
+        return hidden @ self.w2.abs() + self.b2
