@@ -1,0 +1,577 @@
+"""Edge side of the car protocol (docs/protocol.md): frames out, events in, per-car sessions.
+
+Sans-I/O: no sockets, no asyncio, and the clock is injected (``clock()`` returns nanoseconds,
+``time.monotonic_ns`` by default), so the transports (UDP, serial, CAN) and the tests drive the
+same rules. ``EdgeProtocol.receive`` never raises on bad input: every frame becomes an event, and a
+frame that fails a check becomes ``Rejected`` with the reason.
+
+What it keeps per car: the car's current boot session (a JOIN with a new session is a reboot:
+sequence numbers restart and the clock must be synchronised again), the edge's sequence counter,
+the car's last sequence number (replays refused), and the car clock offset from time sync, used
+to write each command's validity deadline in the car's clock.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from enum import IntEnum, IntFlag
+
+PROTOCOL_VERSION = 1
+KEY_BYTES = 32
+TAG_BYTES = 6
+TIME_WINDOW_US = 60_000_000
+DEFAULT_VALIDITY_NS = 10_000_000  # the dispatch deadline of docs/DESIGN: 10 ms
+DRIFT_PPM = 50  # bound on crystal drift between edge and car, widens the deadline margin
+REPLAY_WINDOW = 64  # car frames may arrive this far out of order and still be taken
+_WINDOW_MASK = (1 << REPLAY_WINDOW) - 1
+
+
+class MsgType(IntEnum):
+    """Message type byte; the high bit marks car -> edge."""
+
+    COMMAND = 0x01
+    ESTOP = 0x02
+    TIME_REQUEST = 0x03
+    ACK = 0x81
+    STATUS = 0x82
+    JOIN = 0x83
+    LEAVE = 0x84
+    TIME_RESPONSE = 0x85
+
+
+class Action(IntEnum):
+    """Command actions: 0-4 are ``udan.envs.rules.ACTIONS`` in order, STOP halts the motors."""
+
+    UP = 0
+    DOWN = 1
+    LEFT = 2
+    RIGHT = 3
+    WAIT = 4
+    STOP = 5
+
+
+class AckResult(IntEnum):
+    """What the car did with a frame it authenticated."""
+
+    ACCEPTED = 0
+    DUPLICATE = 1
+    REPLAY = 2
+    EXPIRED = 3
+    BAD_TIME = 4
+    ESTOPPED = 5
+
+
+class Fault(IntFlag):
+    """Status fault flags."""
+
+    NONE = 0
+    WATCHDOG = 1
+    ESTOP = 2
+    STALL = 4
+    LOW_BATTERY = 8
+
+
+_HEAD = struct.Struct(">BBBBHII")
+_HEAD_LEN = _HEAD.size
+_TAIL_LEN = 1 + 6 + TAG_BYTES
+_NO_ACTION = 0xFF
+_LAYOUT: dict[MsgType, tuple[struct.Struct, tuple[str, ...]]] = {
+    MsgType.COMMAND: (struct.Struct(">BQ"), ("action", "deadline_us")),
+    MsgType.ESTOP: (struct.Struct(">BQ"), ("engage", "deadline_us")),
+    MsgType.TIME_REQUEST: (struct.Struct(">Q"), ("t1_ns",)),
+    MsgType.ACK: (struct.Struct(">IBBQ"), ("ref_seq", "result", "action", "rx_us")),
+    MsgType.STATUS: (
+        struct.Struct(">hhHHBI"),
+        ("row", "col", "battery_mv", "faults", "state", "done_seq"),
+    ),
+    MsgType.JOIN: (struct.Struct(">HB"), ("marker", "cause")),
+    MsgType.LEAVE: (struct.Struct(">B"), ("reason",)),
+    MsgType.TIME_RESPONSE: (struct.Struct(">QQQ"), ("t1_ns", "t2_us", "t3_us")),
+}
+_VECTOR_NAMES = {
+    MsgType.COMMAND: "command",
+    MsgType.ESTOP: "estop",
+    MsgType.TIME_REQUEST: "time_request",
+    MsgType.ACK: "ack",
+    MsgType.STATUS: "status",
+    MsgType.JOIN: "join",
+    MsgType.LEAVE: "leave",
+    MsgType.TIME_RESPONSE: "time_response",
+}
+LEAVE_REASONS = ("shutdown", "low_battery", "fault")
+
+
+class FrameError(ValueError):
+    """A frame that breaks the spec's structure; ``reason`` is malformed or wrong_version."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+class NotReady(RuntimeError):
+    """A frame was asked for a car that has not joined (or whose clock is not synchronised)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """A structurally valid frame; its tag is not checked yet."""
+
+    type: MsgType
+    car_id: int
+    session: int
+    seq: int
+    link_id: int
+    timestamp_us: int
+    tag: bytes
+    fields: dict[str, int]
+    signed: bytes
+
+    def as_vector(self) -> dict[str, object]:
+        """Same shape as the ``decoded`` objects in docs/protocol_vectors.json."""
+        return {
+            "type": _VECTOR_NAMES[self.type],
+            "car_id": self.car_id,
+            "session": self.session,
+            "seq": self.seq,
+            "link_id": self.link_id,
+            "timestamp_us": self.timestamp_us,
+            "tag": self.tag.hex(),
+            "payload": dict(self.fields),
+        }
+
+
+def _field_error(kind: MsgType, f: dict[str, int]) -> str | None:
+    checks = {
+        MsgType.COMMAND: f.get("action", 0) <= Action.STOP,
+        MsgType.ESTOP: f.get("engage", 0) in (0, 1),
+        MsgType.ACK: f.get("result", 0) <= AckResult.ESTOPPED
+        and (f.get("action", 0) <= Action.STOP or f.get("action") == _NO_ACTION),
+        MsgType.STATUS: f.get("state", 0) in (0, 1) and f.get("faults", 0) < 16,
+        MsgType.JOIN: f.get("cause", 0) in (0, 1),
+        MsgType.LEAVE: f.get("reason", 0) < len(LEAVE_REASONS),
+    }
+    return None if checks.get(kind, True) else f"{kind.name} field out of range"
+
+
+def decode(data: bytes) -> Decoded:
+    """Parse one frame (any direction) or raise ``FrameError``."""
+    if len(data) == 0:
+        raise FrameError("malformed", "empty")
+    if data[0] != PROTOCOL_VERSION:
+        raise FrameError("wrong_version", f"version {data[0]} != {PROTOCOL_VERSION}")
+    if len(data) < _HEAD_LEN + _TAIL_LEN:
+        raise FrameError("malformed", "truncated")
+    _, raw_type, plen, flags, car_id, session, seq = _HEAD.unpack_from(data)
+    try:
+        kind = MsgType(raw_type)
+    except ValueError:
+        raise FrameError("malformed", f"type 0x{raw_type:02x}") from None
+    fmt, names = _LAYOUT[kind]
+    if plen != fmt.size or len(data) != _HEAD_LEN + fmt.size + _TAIL_LEN:
+        raise FrameError("malformed", "bad length")
+    if flags or car_id == 0 or car_id == 0xFFFF or session == 0 or seq == 0:
+        raise FrameError("malformed", "reserved header value")
+    link_id = data[_HEAD_LEN + plen]
+    if link_id != (1 if raw_type & 0x80 else 0):
+        raise FrameError("malformed", "link id does not match direction")
+    fields = dict(zip(names, fmt.unpack_from(data, _HEAD_LEN), strict=True))
+    if (problem := _field_error(kind, fields)) is not None:
+        raise FrameError("malformed", problem)
+    ts_at = _HEAD_LEN + plen + 1
+    return Decoded(
+        type=kind,
+        car_id=car_id,
+        session=session,
+        seq=seq,
+        link_id=link_id,
+        timestamp_us=int.from_bytes(data[ts_at : ts_at + 6], "big"),
+        tag=bytes(data[len(data) - TAG_BYTES :]),
+        fields=fields,
+        signed=bytes(data[: len(data) - TAG_BYTES]),
+    )
+
+
+def compute_tag(key: bytes, signed: bytes) -> bytes:
+    """HMAC-SHA256 truncated to 48 bits, as MAVLink 2 signing truncates its SHA-256."""
+    return hmac.new(key, signed, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def encode(
+    kind: MsgType,
+    car_id: int,
+    session: int,
+    seq: int,
+    timestamp_us: int,
+    key: bytes,
+    fields: Mapping[str, int],
+) -> bytes:
+    """Serialise and sign a frame of any type (the edge sends 0x01-0x03; tests build the rest)."""
+    fmt, names = _LAYOUT[kind]
+    out = bytearray(_HEAD.pack(PROTOCOL_VERSION, kind, fmt.size, 0, car_id, session, seq))
+    out += fmt.pack(*[fields[n] for n in names])
+    out.append(1 if kind & 0x80 else 0)
+    out += max(0, min(timestamp_us, (1 << 48) - 1)).to_bytes(6, "big")
+    return bytes(out + compute_tag(key, bytes(out)))
+
+
+# --- CAN FD mapping (spec section 10) --------------------------------------------------------
+CAN_ESTOP_BASE = 0x080
+CAN_EDGE_BASE = 0x100
+CAN_CAR_BASE = 0x180
+CAN_MAX_CAR = 0x7F
+_FD_SIZES = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+
+
+def can_pack(frame: bytes) -> tuple[int, bytes]:
+    """``(11-bit id, CAN FD data)`` for one frame: id by direction and car, data zero-padded."""
+    kind, car_id = frame[1], int.from_bytes(frame[4:6], "big")
+    if not 0 < car_id <= CAN_MAX_CAR:
+        raise ValueError(f"car id {car_id} does not fit the CAN mapping (1-{CAN_MAX_CAR})")
+    if kind & 0x80:
+        base = CAN_CAR_BASE
+    else:
+        base = CAN_ESTOP_BASE if kind == MsgType.ESTOP else CAN_EDGE_BASE
+    size = next(s for s in _FD_SIZES if s >= len(frame))
+    return base + car_id, frame + bytes(size - len(frame))
+
+
+def can_unpack(can_id: int, data: bytes) -> bytes:
+    """The frame inside a CAN FD payload; ``FrameError`` if the padding or the id disagree."""
+    if len(data) < 3:
+        raise FrameError("malformed", "CAN payload too short")
+    length = _HEAD_LEN + data[2] + _TAIL_LEN
+    frame, padding = bytes(data[:length]), data[length:]
+    if len(frame) != length or any(padding):
+        raise FrameError("malformed", "CAN padding")
+    try:
+        expected = can_pack(frame)[0]
+    except ValueError:
+        raise FrameError("malformed", "car id outside the CAN range") from None
+    if expected != can_id:
+        raise FrameError("malformed", f"frame does not belong on CAN id 0x{can_id:03x}")
+    return frame
+
+
+# --- events ------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Joined:
+    """A car announced itself. ``previous_session`` set: it rebooted and must be re-synchronised."""
+
+    car_id: int
+    marker: int
+    session: int
+    previous_session: int | None
+    repeat: bool = False  # the same session announced again (the car has not heard from us yet)
+
+    @property
+    def reboot(self) -> bool:
+        """The car had another session before: it rebooted (or was power-cycled)."""
+        return self.previous_session is not None
+
+
+@dataclass(frozen=True, slots=True)
+class Acked:
+    """The car's answer to one edge frame."""
+
+    car_id: int
+    ref_seq: int
+    result: AckResult
+    action: int | None
+    car_rx_us: int
+    received_at_ns: int  # car receive time in the edge clock (estimate)
+    round_trip_ns: int | None  # send -> ack, when ``ref_seq`` is a frame this core encoded
+
+
+@dataclass(frozen=True, slots=True)
+class StatusReport:
+    """A car's heartbeat."""
+
+    car_id: int
+    row: int
+    col: int
+    battery_mv: int
+    faults: Fault
+    moving: bool
+    done_seq: int
+    car_time_us: int
+
+
+@dataclass(frozen=True, slots=True)
+class Left:
+    """A car said goodbye; it must JOIN again to be driven."""
+
+    car_id: int
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSynced:
+    """A time-sync round trip finished; ``offset_ns`` = car clock - edge clock (best sample)."""
+
+    car_id: int
+    offset_ns: int
+    rtt_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class Rejected:
+    """An incoming frame that was dropped, and why."""
+
+    reason: str
+    car_id: int | None = None
+
+
+Event = Joined | Acked | StatusReport | Left | TimeSynced | Rejected
+
+
+@dataclass(frozen=True, slots=True)
+class _Sample:
+    offset_ns: int
+    rtt_ns: int
+    at_ns: int
+
+
+@dataclass
+class _Peer:
+    key: bytes
+    marker: int = 0
+    session: int = 0
+    tx_seq: int = 0
+    rx_seq: int = 0
+    seen: int = 0  # bit i: rx_seq - i was received
+    provisional_offset_ns: int = 0
+    retired: deque[int] = field(default_factory=lambda: deque(maxlen=64))
+    samples: deque[_Sample] = field(default_factory=lambda: deque(maxlen=8))
+    pending_sync: OrderedDict[int, int] = field(default_factory=OrderedDict)
+    sent_at: OrderedDict[int, int] = field(default_factory=OrderedDict)
+
+    def fresh(self, seq: int) -> bool:
+        """Anti-replay window (RFC 4303 style): a new seq, or an unseen one of the last 64."""
+        if seq > self.rx_seq:
+            self.seen = ((self.seen << (seq - self.rx_seq)) | 1) & _WINDOW_MASK
+            self.rx_seq = seq
+            return True
+        back = self.rx_seq - seq
+        if back >= REPLAY_WINDOW or self.seen >> back & 1:
+            return False
+        self.seen |= 1 << back
+        return True
+
+    def best(self) -> _Sample | None:
+        return min(self.samples, key=lambda s: s.rtt_ns, default=None)
+
+    def offset_ns(self) -> int:
+        best = self.best()
+        return self.provisional_offset_ns if best is None else best.offset_ns
+
+
+def _remember(table: OrderedDict[int, int], k: int, v: int, limit: int) -> None:
+    table[k] = v
+    while len(table) > limit:
+        table.popitem(last=False)
+
+
+class EdgeProtocol:
+    """Protocol state for every car the edge holds a key for."""
+
+    def __init__(
+        self,
+        keys: Mapping[int, bytes],
+        clock: Callable[[], int] = time.monotonic_ns,
+        *,
+        drift_ppm: int = DRIFT_PPM,
+    ) -> None:
+        self._clock = clock
+        self._drift_ppm = drift_ppm
+        self._peers: dict[int, _Peer] = {}
+        for car_id, key in keys.items():
+            self.add_car(car_id, key)
+
+    def add_car(self, car_id: int, key: bytes) -> None:
+        """Provision a car's key; the car can then JOIN at any time."""
+        if not 0 < car_id < 0xFFFF:
+            raise ValueError(f"car id {car_id} outside 1-65534")
+        if len(key) != KEY_BYTES:
+            raise ValueError(f"car {car_id}: key must be {KEY_BYTES} bytes, got {len(key)}")
+        self._peers[car_id] = _Peer(key=bytes(key))
+
+    # --- queries ---
+    def joined(self, car_id: int) -> bool:
+        """The car announced a session the edge accepted (and has not left)."""
+        peer = self._peers.get(car_id)
+        return peer is not None and peer.session != 0
+
+    def synced(self, car_id: int) -> bool:
+        """A time-sync round trip completed in the car's current session."""
+        peer = self._peers.get(car_id)
+        return peer is not None and peer.session != 0 and bool(peer.samples)
+
+    def joined_cars(self) -> list[int]:
+        """Ids of the cars currently joined."""
+        return sorted(c for c, p in self._peers.items() if p.session)
+
+    def session(self, car_id: int) -> int:
+        """The car's current boot session (0 if it has not joined)."""
+        return self._peers[car_id].session
+
+    def sync_age_ns(self, car_id: int) -> int | None:
+        """Time since the best time-sync sample, to decide when to sync again."""
+        best = self._peers[car_id].best()
+        return None if best is None else self._clock() - best.at_ns
+
+    def car_time_us(self, car_id: int, edge_ns: int | None = None) -> int:
+        """The car's clock at edge time ``edge_ns`` (default now), in microseconds."""
+        peer = self._peers[car_id]
+        now = self._clock() if edge_ns is None else edge_ns
+        return (now + peer.offset_ns()) // 1000
+
+    # --- frames out ---
+    def _peer_for_send(self, car_id: int, need_sync: bool) -> _Peer:
+        peer = self._peers.get(car_id)
+        if peer is None or not peer.session:
+            raise NotReady(f"car {car_id} has not joined")
+        if need_sync and not peer.samples:
+            raise NotReady(f"car {car_id}: clock not synchronised yet")
+        return peer
+
+    def _frame(self, car_id: int, peer: _Peer, kind: MsgType, now: int, **fields: int) -> bytes:
+        peer.tx_seq += 1
+        _remember(peer.sent_at, peer.tx_seq, now, 64)
+        ts = (now + peer.offset_ns()) // 1000
+        return encode(kind, car_id, peer.session, peer.tx_seq, ts, peer.key, fields)
+
+    def _deadline_us(self, peer: _Peer, now: int, validity_ns: int) -> int:
+        """Edge deadline in the car clock, pulled in by the sync uncertainty (rtt/2 + drift)."""
+        best = peer.best()
+        if best is None:
+            return (now + validity_ns + peer.provisional_offset_ns) // 1000
+        margin = best.rtt_ns // 2 + (now - best.at_ns) * self._drift_ppm // 1_000_000
+        return max(0, now + validity_ns + best.offset_ns - margin) // 1000
+
+    def encode_command(
+        self, car_id: int, action: int, validity_ns: int = DEFAULT_VALIDITY_NS
+    ) -> bytes:
+        """A signed COMMAND valid for ``validity_ns`` from now (needs a synchronised clock)."""
+        act = Action(action)
+        peer = self._peer_for_send(car_id, need_sync=True)
+        now = self._clock()
+        deadline = self._deadline_us(peer, now, validity_ns)
+        return self._frame(car_id, peer, MsgType.COMMAND, now, action=act, deadline_us=deadline)
+
+    def encode_estop(
+        self, car_id: int, engage: bool = True, validity_ns: int = DEFAULT_VALIDITY_NS
+    ) -> bytes:
+        """ESTOP engage (the car ignores its deadline) or release (needs a synchronised clock)."""
+        peer = self._peer_for_send(car_id, need_sync=not engage)
+        now = self._clock()
+        deadline = self._deadline_us(peer, now, validity_ns)
+        return self._frame(
+            car_id, peer, MsgType.ESTOP, now, engage=int(engage), deadline_us=deadline
+        )
+
+    def encode_estop_all(self, engage: bool = True) -> dict[int, bytes]:
+        """One ESTOP per joined car (keys are per car, so there is no broadcast frame)."""
+        return {c: self.encode_estop(c, engage) for c in self.joined_cars()}
+
+    def encode_time_request(self, car_id: int) -> bytes:
+        """TIME_REQUEST carrying the edge send time; the response gives offset and round trip."""
+        peer = self._peer_for_send(car_id, need_sync=False)
+        now = self._clock()
+        frame = self._frame(car_id, peer, MsgType.TIME_REQUEST, now, t1_ns=now)
+        _remember(peer.pending_sync, now, peer.tx_seq, 8)
+        return frame
+
+    # --- frames in ---
+    def receive(self, data: bytes) -> Event:
+        """Judge one frame from a car; never raises."""
+        now = self._clock()
+        try:
+            d = decode(data)
+        except FrameError as err:
+            return Rejected(err.reason)
+        if not d.type & 0x80:
+            return Rejected("malformed", d.car_id)
+        peer = self._peers.get(d.car_id)
+        if peer is None:
+            return Rejected("unknown_car", d.car_id)
+        if not hmac.compare_digest(compute_tag(peer.key, d.signed), d.tag):
+            return Rejected("bad_tag", d.car_id)
+        if d.type == MsgType.JOIN:
+            return self._on_join(d, peer, now)
+        if not peer.session:
+            return Rejected("not_joined", d.car_id)
+        if d.session != peer.session:
+            return Rejected("wrong_session", d.car_id)
+        if not peer.fresh(d.seq):
+            return Rejected("replay", d.car_id)
+        if abs(d.timestamp_us - (now + peer.offset_ns()) // 1000) > TIME_WINDOW_US:
+            return Rejected("bad_time", d.car_id)
+        f = d.fields
+        if d.type == MsgType.ACK:
+            sent = peer.sent_at.get(f["ref_seq"])
+            return Acked(
+                car_id=d.car_id,
+                ref_seq=f["ref_seq"],
+                result=AckResult(f["result"]),
+                action=None if f["action"] == _NO_ACTION else f["action"],
+                car_rx_us=f["rx_us"],
+                received_at_ns=f["rx_us"] * 1000 - peer.offset_ns(),
+                round_trip_ns=None if sent is None else now - sent,
+            )
+        if d.type == MsgType.STATUS:
+            return StatusReport(
+                car_id=d.car_id,
+                row=f["row"],
+                col=f["col"],
+                battery_mv=f["battery_mv"],
+                faults=Fault(f["faults"]),
+                moving=bool(f["state"]),
+                done_seq=f["done_seq"],
+                car_time_us=d.timestamp_us,
+            )
+        if d.type == MsgType.LEAVE:
+            peer.retired.append(peer.session)
+            peer.session = 0
+            return Left(d.car_id, LEAVE_REASONS[f["reason"]])
+        return self._on_time_response(d, peer, now)
+
+    def _on_join(self, d: Decoded, peer: _Peer, now: int) -> Event:
+        if d.session in peer.retired:
+            return Rejected("replay", d.car_id)
+        if d.session == peer.session:
+            if not peer.fresh(d.seq):
+                return Rejected("replay", d.car_id)
+            return Joined(d.car_id, peer.marker, d.session, None, repeat=True)
+        previous = peer.session or None
+        if previous is not None:
+            peer.retired.append(previous)
+        peer.session = d.session
+        peer.marker = d.fields["marker"]
+        peer.tx_seq = 0
+        peer.rx_seq, peer.seen = d.seq, 1
+        peer.provisional_offset_ns = d.timestamp_us * 1000 - now
+        peer.samples.clear()
+        peer.pending_sync.clear()
+        peer.sent_at.clear()
+        return Joined(d.car_id, peer.marker, d.session, previous)
+
+    def _on_time_response(self, d: Decoded, peer: _Peer, now: int) -> Event:
+        t1 = d.fields["t1_ns"]
+        if t1 not in peer.pending_sync:
+            return Rejected("unsolicited", d.car_id)
+        del peer.pending_sync[t1]
+        t2, t3 = d.fields["t2_us"] * 1000, d.fields["t3_us"] * 1000
+        rtt = (now - t1) - (t3 - t2)
+        if rtt < 0 or t3 < t2:
+            return Rejected("bad_time", d.car_id)
+        offset = ((t2 - t1) + (t3 - now)) // 2
+        peer.samples.append(_Sample(offset, rtt, now))
+        best = min(peer.samples, key=lambda s: s.rtt_ns)
+        return TimeSynced(d.car_id, best.offset_ns, best.rtt_ns)

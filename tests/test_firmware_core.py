@@ -1,0 +1,117 @@
+"""The car's sans-I/O core with an injected clock (frames built by the firmware's own encoder)."""
+
+from __future__ import annotations
+
+import pytest
+
+from firmware_mock import wire
+from firmware_mock.core import DUPLICATE_CACHE, CarCore, Telemetry
+
+KEY = bytes(range(100, 132))
+SESSION = 0xC0FFEE
+
+
+class Edge:
+    """Edge frames for car 1 as the spec describes them."""
+
+    def __init__(self, session: int = SESSION, key: bytes = KEY) -> None:
+        self.session, self.key, self.seq = session, key, 0
+
+    def command(self, action: int, now_us: int, validity_us: int = 10_000) -> bytes:
+        self.seq += 1
+        return wire.encode(
+            wire.COMMAND,
+            1,
+            self.session,
+            self.seq,
+            now_us,
+            self.key,
+            action=action,
+            deadline_us=now_us + validity_us,
+        )
+
+
+@pytest.fixture
+def car() -> CarCore:
+    core = CarCore(1, KEY, marker=9)  # the default watchdog: 300 ms, as the spec says
+    core.boot(SESSION, 0)
+    return core
+
+
+def test_boot_announces_join_and_resets(car: CarCore) -> None:
+    edge = Edge()
+    assert car.handle(edge.command(0, 100), 100).verdict == "accepted"
+    join = wire.parse(car.boot(SESSION + 1, 5))
+    assert (join.type, join.session, join.seq, join.payload["marker"]) == (
+        wire.JOIN,
+        SESSION + 1,
+        1,
+        9,
+    )
+    assert not car.joined and car.counters.reboots == 1
+    assert car.handle(edge.command(0, 200), 200).verdict == "wrong_session"
+
+
+def test_duplicate_cache_is_bounded_then_replay(car: CarCore) -> None:
+    edge = Edge()
+    first = edge.command(4, 10, validity_us=900_000)
+    assert car.handle(first, 10).verdict == "accepted"
+    assert car.handle(first, 20).verdict == "duplicate"
+    for i in range(DUPLICATE_CACHE):
+        assert car.handle(edge.command(4, 30 + i), 30 + i).verdict == "accepted"
+    out = car.handle(first, 100)
+    assert out.verdict == "replay" and out.motor is None
+    ack = wire.parse(out.replies[0])
+    assert wire.RESULTS[ack.payload["result"]] == "replay"
+    assert car.counters.duplicates == 1 and car.counters.rejected["replay"] == 1
+
+
+def test_watchdog_trips_once_and_rearms_on_the_next_command(car: CarCore) -> None:
+    edge = Edge()
+    assert car.next_wakeup_us() is None
+    car.handle(edge.command(0, 1_000), 1_000)
+    assert car.next_wakeup_us() == 301_000
+    assert not car.poll(300_999)
+    assert car.poll(301_000)
+    assert not car.poll(400_000)
+    status = wire.parse(car.status(400_000, Telemetry()))
+    assert status.payload["faults"] & wire.FAULT_WATCHDOG
+    car.handle(edge.command(0, 500_000), 500_000)
+    assert not car.watchdog_tripped and car.counters.watchdog_stops == 1
+
+
+def test_unauthenticated_frames_get_no_answer(car: CarCore) -> None:
+    forged = bytearray(Edge().command(0, 10))
+    forged[-2] ^= 0x10
+    for data in (bytes(forged), Edge(key=bytes(32)).command(0, 10), b"\x01" * 30, b""):
+        out = car.handle(data, 10)
+        assert out.replies == () and out.motor is None and out.verdict != "accepted"
+    assert car.counters.accepted == 0 and car.counters.received == 4
+
+
+def test_time_request_is_answered_with_car_times(car: CarCore) -> None:
+    req = wire.encode(wire.TIME_REQ, 1, SESSION, 1, 50, KEY, t1_ns=123_456)
+    out = car.handle(req, 777)
+    resp = wire.parse(out.replies[0])
+    assert resp.type == wire.TIME_RESP
+    assert resp.payload == {"t1_ns": 123_456, "t2_us": 777, "t3_us": 777}
+    assert car.joined and out.motor is None
+
+
+def test_counters_list_every_reason(car: CarCore) -> None:
+    counters = car.counters.as_dict()
+    assert set(counters["rejected"]) >= {
+        "bad_tag",
+        "replay",
+        "expired",
+        "malformed",
+        "unknown_car",
+        "wrong_session",
+        "bad_time",
+        "estopped",
+    }
+
+
+def test_key_length_is_checked() -> None:
+    with pytest.raises(ValueError, match="32 bytes"):
+        CarCore(1, b"short", marker=1)
