@@ -73,6 +73,7 @@ def test_surround_prints_the_target_table_too(capsys):
         (["--obstacles", "0-40"], "obstacle zone"),
         (["--env", "arena/nope"], "unknown"),
         (["--env", "magent/tiger"], "arena tasks only"),
+        (["/nonexistent/checkpoint.pt"], "does not exist"),
         (["--episodes", "0"], "--episodes"),
         (["--csv", "/nonexistent/dir/x.csv"], "does not exist"),
     ],

@@ -62,12 +62,32 @@ def test_ungrouped_agents_get_a_zero_message_and_q_heads_shape():
     assert head(feats, msg).shape == (4, 5)
 
 
-def test_encoder_state_is_per_agent():
+def test_encoder_state_is_per_agent_and_fresh_agents_forget():
     enc = AgentEncoder(10, H)
-    obs = torch.randn(3, 10)
-    state = enc.initial_state(3)
-    feats, state = enc(obs, state)
+    obs = torch.randn(1, 3, 10)
+    feats, state = enc(obs, enc.initial_state(3))
     feats2, _ = enc(obs, state)
-    assert feats.shape == (3, H) and not torch.allclose(feats, feats2), "memory changes output"
-    single, _ = enc(obs[1:2], tuple(s[1:2] for s in enc.initial_state(3)))
-    assert torch.allclose(single, feats[1:2], atol=1e-6)
+    assert feats.shape == (1, 3, H) and not torch.allclose(feats, feats2), "memory matters"
+    single, _ = enc(obs[:, 1:2], enc.initial_state(1))
+    assert torch.allclose(single, feats[:, 1:2], atol=1e-6)
+    fresh = torch.tensor([[False, True, False]])
+    again, _ = enc(obs, state, fresh)
+    assert torch.allclose(again[0, 1], feats[0, 1], atol=1e-6), "a new agent starts from zero"
+    assert torch.allclose(again[0, 0], feats2[0, 0], atol=1e-6)
+
+
+def test_fused_sequence_equals_step_by_step_with_mid_sequence_joins():
+    enc = AgentEncoder(10, H)
+    obs = torch.randn(6, 4, 10)
+    fresh = torch.zeros(6, 4, dtype=torch.bool)
+    fresh[0] = True
+    whole, _ = enc(obs, enc.initial_state(4), fresh)
+    state, steps = enc.initial_state(4), []
+    for t in range(6):
+        out, state = enc(obs[t : t + 1], state, fresh[t : t + 1])
+        steps.append(out)
+    assert torch.allclose(whole, torch.cat(steps), atol=1e-5)
+    fresh[3, 2] = True  # an agent joins slot 2 at step 3
+    joined, _ = enc(obs, enc.initial_state(4), fresh)
+    restart, _ = enc(obs[3:, 2:3], enc.initial_state(1))
+    assert torch.allclose(joined[3:, 2:3], restart, atol=1e-5)

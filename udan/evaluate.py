@@ -1,4 +1,4 @@
-"""``udan-eval``: paper-style score tables (rows obstacles, columns agents) for a policy.
+"""``udan-eval``: paper-style score tables (rows obstacles, columns agents) for policies.
 
 Every cell runs its episodes as one batch with a seed derived from (seed, agents, obstacles),
 so two policies evaluated with the same ``--seed`` meet exactly the same layouts.
@@ -104,52 +104,167 @@ def write_csv(results: list[CellResult], path: Path) -> None:
             )
 
 
+class CheckpointPolicy:
+    """A trained checkpoint acting greedily, with per-slot memory (fresh for new agents)."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.actor = None
+
+    def reset(self, env) -> None:
+        from udan.learner import Actor
+
+        self.actor = Actor(self.model, env.batch, env.slots)
+
+    def act(self, env) -> np.ndarray:
+        return self.actor.act(env.observe(), env.present, env.pos, env.joined)
+
+
+def load_sources(args: argparse.Namespace) -> list[tuple[str, str, Policy]]:
+    """(label, env name, policy) for every checkpoint given and the ``--policy`` if any."""
+    sources = []
+    for path in args.checkpoints:
+        from udan.checkpoint import load_model
+
+        model, ckpt = load_model(path)
+        env_name = args.env or ckpt["env"]
+        if env_name != ckpt["env"]:
+            raise EnvConfigError(f"{path} was trained on {ckpt['env']}, not {env_name}")
+        sources.append(
+            (f"{ckpt['algo']} ({Path(path).parent.name})", env_name, CheckpointPolicy(model))
+        )
+    if args.policy:
+        sources.append(
+            (args.policy, args.env or "arena/find_water", POLICIES[args.policy](seed=args.seed))
+        )
+    if not sources:
+        raise EnvConfigError("nothing to evaluate: give checkpoints and/or --policy")
+    if len({env for _, env, _ in sources}) > 1:
+        raise EnvConfigError("all checkpoints must come from one env to share a table")
+    return sources
+
+
+def plot_heatmap(results: list[CellResult], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    agents = sorted({r.agents for r in results})
+    obstacles = sorted({r.obstacles for r in results})
+    grid = np.array(
+        [
+            [
+                next(r.agent_score for r in results if r.agents == n and r.obstacles == m)
+                for n in agents
+            ]
+            for m in obstacles
+        ]
+    )
+    fig, ax = plt.subplots(figsize=(1.2 * len(agents) + 2, 0.45 * len(obstacles) + 1.5))
+    im = ax.imshow(grid, cmap="viridis", aspect="auto")
+    ax.set_xticks(range(len(agents)), agents)
+    ax.set_yticks(range(len(obstacles)), obstacles)
+    ax.set_xlabel("agents")
+    ax.set_ylabel("obstacles")
+    for (i, j), v in np.ndenumerate(grid):
+        ax.text(j, i, f"{v:.1f}", ha="center", va="center", color="w", fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(im, ax=ax, label="average agent score")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_comparison(tables: dict[str, list[CellResult]], env_name: str, path: Path) -> None:
+    """The paper's Figs. 7-8: score by number of agents, one line per policy."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, results in tables.items():
+        agents = sorted({r.agents for r in results})
+        ax.plot(
+            agents,
+            [np.mean([r.agent_score for r in results if r.agents == n]) for n in agents],
+            marker="o",
+            label=label,
+        )
+    ax.set_xticks(sorted({r.agents for results in tables.values() for r in results}))
+    ax.set_xlabel("agents")
+    ax.set_ylabel("average agent score (mean over obstacles)")
+    ax.set_title(env_name)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _slug(label: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in label).strip("_")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="udan-eval", description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoints", nargs="*", help="checkpoint.pt files to evaluate")
     parser.add_argument(
-        "--policy", choices=sorted(POLICIES), required=True, help="reference policy to evaluate"
+        "--policy", choices=sorted(POLICIES), help="also evaluate a reference policy"
     )
-    parser.add_argument("--env", default="arena/find_water", help="arena task to evaluate on")
+    parser.add_argument("--env", help="arena task (default: the checkpoints' env, or find_water)")
     parser.add_argument("--agents", default="1-5", help="agent counts, e.g. 1-5 (columns)")
     parser.add_argument("--obstacles", default="0-9", help="obstacle counts, e.g. 0-9 (rows)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per cell")
     parser.add_argument("--seed", type=int, default=0, help="seed of the layouts and the policy")
-    parser.add_argument("--csv", type=Path, help="also write the cells to this CSV file")
+    parser.add_argument("--csv", type=Path, help="write the cells to this CSV (one source only)")
+    parser.add_argument(
+        "--out", type=Path, help="folder for CSVs, heatmap PNGs and the comparison plot"
+    )
     args = parser.parse_args(argv)
+    from udan.checkpoint import CheckpointError
+
     try:
         if args.episodes < 1:
             raise EnvConfigError(f"--episodes must be >= 1, got {args.episodes}")
-        if not args.env.startswith("arena/"):
-            raise EnvConfigError(f"reference policies exist for arena tasks only, not {args.env!r}")
+        if args.env is not None and not args.env.startswith("arena/"):
+            raise EnvConfigError(f"udan-eval evaluates arena tasks only, not {args.env!r}")
         agents = parse_range(args.agents, "--agents")
         obstacles = parse_range(args.obstacles, "--obstacles")
-        if args.csv is not None and not args.csv.parent.is_dir():
-            raise EnvConfigError(f"--csv: folder {args.csv.parent} does not exist")
+        for folder, what in ((args.csv and args.csv.parent, "--csv"), (args.out, "--out")):
+            if folder is not None and not folder.is_dir():
+                raise EnvConfigError(f"{what}: folder {folder} does not exist")
+        sources = load_sources(args)
+        if args.csv is not None and len(sources) > 1:
+            raise EnvConfigError("--csv takes one source; use --out for several")
         started = time.perf_counter()
-        results = evaluate(
-            args.env,
-            POLICIES[args.policy](seed=args.seed),
-            agents,
-            obstacles,
-            args.episodes,
-            args.seed,
-        )
-    except EnvConfigError as err:
+        tables = {
+            label: evaluate(env_name, policy, agents, obstacles, args.episodes, args.seed)
+            for label, env_name, policy in sources
+        }
+    except (EnvConfigError, CheckpointError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
-    title = (
-        f"{args.env}, policy {args.policy}: average agent score "
-        f"({args.episodes} episodes per cell, seed {args.seed})"
-    )
-    print(format_table(results, "agent_score", title))
-    if args.env == "arena/surround":
-        print()
-        print(
-            format_table(results, "target_score", f"{args.env}, policy {args.policy}: target score")
+    env_name = sources[0][1]
+    for label, results in tables.items():
+        title = (
+            f"{env_name}, {label}: average agent score "
+            f"({args.episodes} episodes per cell, seed {args.seed})"
         )
-    print(f"\n{len(results)} cells in {time.perf_counter() - started:.1f} s")
+        print(format_table(results, "agent_score", title))
+        if env_name == "arena/surround":
+            print()
+            print(format_table(results, "target_score", f"{env_name}, {label}: target score"))
+        print()
+        if args.out is not None:
+            write_csv(results, args.out / f"{_slug(label)}.csv")
+            plot_heatmap(results, title, args.out / f"{_slug(label)}.png")
     if args.csv is not None:
-        write_csv(results, args.csv)
+        write_csv(next(iter(tables.values())), args.csv)
+    if args.out is not None and len(tables) > 1:
+        plot_comparison(tables, env_name, args.out / "comparison.png")
+    print(f"{sum(map(len, tables.values()))} cells in {time.perf_counter() - started:.1f} s")
     return 0
 
 

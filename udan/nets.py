@@ -18,25 +18,46 @@ from torch.nn import functional as F
 
 
 class AgentEncoder(nn.Module):
-    """Per-agent MLP + LSTM cell; the recurrent state is kept per agent id by the caller."""
+    """Per-agent MLP + LSTM; the recurrent state is kept per agent id by the caller."""
 
     def __init__(self, obs_dim: int, hidden: int) -> None:
         super().__init__()
         self.mlp = nn.Sequential(
             nn.Linear(obs_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
         )
-        self.cell = nn.LSTMCell(hidden, hidden)
+        self.lstm = nn.LSTM(hidden, hidden)
         self.hidden = hidden
 
     def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        zeros = torch.zeros(n, self.hidden)
+        zeros = torch.zeros(1, n, self.hidden)
         return zeros, zeros.clone()
 
     def forward(
-        self, obs: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+        self,
+        obs: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor],
+        fresh: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        h, c = self.cell(self.mlp(obs), state)
-        return h, (h, c)
+        """``obs`` (T, M, D), state (1, M, H) each -> features (T, M, H), new state.
+
+        ``fresh`` (T, M) marks agents that are new at a step: their memory starts from zero.
+        The whole sequence runs as one fused LSTM call unless agents join after step 0.
+        """
+        x = self.mlp(obs)
+        if fresh is None:
+            return self.lstm(x, state)
+        if not fresh[1:].any():
+            return self.lstm(x, self._forget(state, fresh[0]))
+        outs = []
+        for t in range(x.shape[0]):
+            out, state = self.lstm(x[t : t + 1], self._forget(state, fresh[t]))
+            outs.append(out)
+        return torch.cat(outs), state
+
+    @staticmethod
+    def _forget(state, fresh: torch.Tensor):
+        keep = (~fresh).to(state[0].dtype)[None, :, None]
+        return state[0] * keep, state[1] * keep
 
 
 class LeaderScorer(nn.Module):
@@ -67,6 +88,11 @@ class GroupComm(nn.Module):
         self.lstm = nn.LSTM(hidden, hidden // 2, batch_first=True, bidirectional=True)
         self.proj = nn.Linear(2 * (hidden // 2), hidden)
 
+    def encode_groups(self, members: torch.Tensor) -> torch.Tensor:
+        """Members' features (G, s, H), leader first -> their updated encodings (G, s, H)."""
+        out, _ = self.lstm(members)
+        return self.proj(out)
+
     def forward(self, feats: torch.Tensor, rounds: list[torch.Tensor]) -> torch.Tensor:
         """``feats`` (M, H) of all agents; ``rounds``: per round a (G, s) tensor of member rows.
 
@@ -78,8 +104,8 @@ class GroupComm(nn.Module):
         for members in rounds:
             if members.numel() == 0:
                 continue
-            out, _ = self.lstm(enc[members])
-            enc = enc.index_put((members.reshape(-1),), self.proj(out).reshape(-1, enc.shape[-1]))
+            updated = self.encode_groups(enc[members])
+            enc = enc.index_put((members.reshape(-1),), updated.reshape(-1, enc.shape[-1]))
             grouped[members.reshape(-1)] = True
         return torch.where(grouped[:, None], enc, torch.zeros_like(enc))
 

@@ -1,0 +1,155 @@
+"""udan-train end to end at tiny sizes: learning, exact resume, checkpoints, bad input."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from udan.checkpoint import CheckpointError, load_checkpoint, load_model
+from udan.evaluate import CheckpointPolicy, evaluate
+from udan.learner import ALGOS
+from udan.policies import OraclePolicy
+from udan.train import TrainConfig, field_docs, train
+
+BIN = Path(sys.executable).parent
+TINY = {
+    "n_envs": 4,
+    "batch_episodes": 4,
+    "updates_per_rollout": 2,
+    "hidden": 16,
+    "attn_dim": 8,
+    "mix_dim": 8,
+    "buffer_episodes": 64,
+}
+
+
+def quiet(*args, **kwargs):
+    pass
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_algo_trains_and_its_checkpoint_acts(tmp_path, algo):
+    agents = "3" if algo == "qmix" else "1-4"
+    cfg = TrainConfig(algo=algo, agents=agents, steps=800, out=str(tmp_path / algo), **TINY)
+    path = train(cfg, log=quiet)
+    model, ckpt = load_model(path)
+    assert ckpt["algo"] == algo and ckpt["env"] == "arena/find_water"
+    assert ckpt["obs_spec"]["version"] == 1 and ckpt["progress"]["steps"] == 800
+    assert ckpt["config"]["agents"] == agents
+    assert (tmp_path / algo / "progress.csv").read_text().count("\n") >= 4
+    res = evaluate("arena/find_water", CheckpointPolicy(model), (1, 4), (0, 0), 2, seed=0)
+    assert len(res) == 4  # evaluated at every N, also those QMIX never saw
+
+
+def test_save_load_gives_identical_actions(tmp_path):
+    path = train(TrainConfig(steps=400, out=str(tmp_path / "r"), **TINY), log=quiet)
+    a, _ = load_model(path)
+    b, _ = load_model(path)
+    r1 = evaluate("arena/find_water", CheckpointPolicy(a), (3, 3), (2, 2), 4, seed=3)
+    r2 = evaluate("arena/find_water", CheckpointPolicy(b), (3, 3), (2, 2), 4, seed=3)
+    assert r1 == r2
+
+
+def test_an_interrupted_run_resumes_exactly(tmp_path):
+    def config(out):
+        return TrainConfig(steps=1600, out=str(tmp_path / out), checkpoint_every=800, **TINY)
+
+    straight = train(config("a"), log=quiet)
+
+    def interrupt_after_first_checkpoint(*args, **kwargs):
+        if args and "steps 1,000" in args[0]:  # the rollout after the 800-step checkpoint
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(config("b"), log=interrupt_after_first_checkpoint)
+    assert load_checkpoint(tmp_path / "b" / "checkpoint.pt")["progress"]["steps"] == 800
+    resumed = train(config("b"), resume=True, log=quiet)
+    a, b = load_checkpoint(straight), load_checkpoint(resumed)
+    assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
+    assert a["progress"]["updates"] == b["progress"]["updates"]
+
+
+def test_learns_the_known_answer_one_agent_no_obstacles(tmp_path):
+    """The identity-env habit: one agent, no obstacles; the oracle's score is optimal here."""
+    cfg = TrainConfig(
+        algo="udan",
+        agents="1",
+        obstacles="0",
+        steps=64000,
+        eps_fraction=0.3,
+        updates_per_rollout=16,
+        batch_episodes=16,
+        out=str(tmp_path / "r"),
+        checkpoint_every=1e9,
+    )
+    model, _ = load_model(train(cfg, log=quiet))
+    learned = evaluate("arena/find_water", CheckpointPolicy(model), (1, 1), (0, 0), 50, seed=9)
+    best = evaluate("arena/find_water", OraclePolicy(), (1, 1), (0, 0), 50, seed=9)
+    assert learned[0].agent_score >= 0.95 * best[0].agent_score, (learned, best)
+
+
+def test_every_config_field_is_documented_and_a_flag():
+    docs = field_docs(TrainConfig)
+    assert set(docs) == set(TrainConfig.__dataclass_fields__)
+    out = subprocess.run([BIN / "udan-train", "--help"], capture_output=True, text=True).stdout
+    assert all(f"--{name.replace('_', '-')}" in out for name in docs)
+
+
+def run_cli(*args, tool="udan-train"):
+    return subprocess.run(
+        [BIN / tool, *map(str, args)], capture_output=True, text=True, timeout=120
+    )
+
+
+def one_line_exit_2(proc, fragment):
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and fragment in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--algo", "sarsa"], "unknown algo"),
+        (["--env", "arena/mars"], "unknown"),
+        (["--env", "magent/tiger"], "arena tasks"),
+        (["--agents", "5-1"], "inverted"),
+        (["--algo", "qmix", "--agents", "1-5"], "fixed number"),
+        (["--out", "/nonexistent/dir/run"], "does not exist"),
+    ],
+)
+def test_bad_train_input(args, fragment, tmp_path):
+    one_line_exit_2(
+        run_cli("--steps", "10", *args, *([] if "--out" in args else ["--out", tmp_path / "r"])),
+        fragment,
+    )
+
+
+def test_resume_with_another_config_and_existing_run(tmp_path):
+    out = tmp_path / "r"
+    small = ["--steps", 200, "--n-envs", 4, "--batch-episodes", 4, "--hidden", 16]
+    assert run_cli(*small, "--out", out).returncode == 0
+    one_line_exit_2(run_cli(*small, "--out", out), "already holds a run")
+    one_line_exit_2(run_cli(*small, "--out", out, "--resume", "--lr", 0.1), "config differs")
+    one_line_exit_2(run_cli(*small, "--out", tmp_path / "none", "--resume"), "does not exist")
+
+
+def test_corrupt_truncated_and_foreign_checkpoints(tmp_path):
+    good = train(TrainConfig(steps=200, out=str(tmp_path / "r"), **TINY), log=quiet)
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(np.random.default_rng(0).bytes(4096))
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, foreign)
+    for path in (truncated, garbage, foreign):
+        with pytest.raises(CheckpointError):
+            load_model(path)
+        one_line_exit_2(run_cli(path, "--episodes", 1, tool="udan-eval"), str(path))
+    one_line_exit_2(
+        run_cli(good, "--env", "arena/surround", "--episodes", 1, tool="udan-eval"),
+        "trained on arena/find_water",
+    )

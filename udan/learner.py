@@ -1,0 +1,222 @@
+"""Value-based multi-agent learners on one agent network: UDAN and the QMIX/VDN/IQL baselines.
+
+Everything an algorithm changes is here: whether agents communicate (UDAN), how agent Qs are
+mixed (set mixer, QMIX hypernetwork over the global state, sum, none), and the losses. The
+acting path (:class:`Actor`) is used for training rollouts and for ``udan-eval`` alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups
+from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
+
+ALGOS = ("udan", "qmix", "vdn", "iql")
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Shapes and algorithm choices that define a model's weights (saved in checkpoints)."""
+
+    algo: str
+    obs_dim: int
+    n_actions: int
+    hidden: int = 64
+    attn_dim: int = 32
+    mix_dim: int = 32
+    group_size: int = 3
+    group_interval: int = 5
+    leader_threshold: float = 0.5
+    state_dim: int = 0
+    mix_agents: int = 0
+    """QMIX only: the fixed number of agents its hypernetwork mixes (trained at fixed N)."""
+
+    @property
+    def communicates(self) -> bool:
+        return self.algo == "udan"
+
+
+class QMixer(nn.Module):
+    """QMIX (Rashid et al.): hypernetworks over the global state give non-negative weights."""
+
+    def __init__(self, state_dim: int, n_agents: int, mix_dim: int) -> None:
+        super().__init__()
+        self.n_agents, self.mix_dim = n_agents, mix_dim
+        self.hyper_w1 = nn.Linear(state_dim, n_agents * mix_dim)
+        self.hyper_b1 = nn.Linear(state_dim, mix_dim)
+        self.hyper_w2 = nn.Linear(state_dim, mix_dim)
+        self.value = nn.Sequential(nn.Linear(state_dim, mix_dim), nn.ReLU(), nn.Linear(mix_dim, 1))
+
+    def forward(self, q: torch.Tensor, state: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        w1 = self.hyper_w1(state).abs().view(-1, self.n_agents, self.mix_dim)
+        q = q.masked_fill(~mask, 0.0)[:, : self.n_agents]
+        hidden = F.elu(torch.einsum("bn,bnm->bm", q, w1) + self.hyper_b1(state))
+        w2 = self.hyper_w2(state).abs()
+        return (hidden * w2).sum(-1) + self.value(state).squeeze(-1)
+
+
+class MultiAgentQ(nn.Module):
+    """Shared agent network (+ communication for UDAN) and the algorithm's mixer."""
+
+    def __init__(self, spec: ModelSpec) -> None:
+        super().__init__()
+        if spec.algo not in ALGOS:
+            raise ValueError(f"unknown algo {spec.algo!r}; known: {', '.join(ALGOS)}")
+        self.spec = spec
+        self.encoder = AgentEncoder(spec.obs_dim, spec.hidden)
+        self.head = QHead(spec.hidden, spec.n_actions)
+        if spec.communicates:
+            self.leader = LeaderScorer(spec.hidden, spec.attn_dim)
+            self.comm = GroupComm(spec.hidden)
+        if spec.algo == "udan":
+            self.mixer = SetMixer(spec.hidden, spec.mix_dim)
+        elif spec.algo == "qmix":
+            self.mixer = QMixer(spec.state_dim, spec.mix_agents, spec.mix_dim)
+
+    def messages(self, feats: torch.Tensor, rounds: list[torch.Tensor]) -> torch.Tensor:
+        if not self.spec.communicates:
+            return torch.zeros_like(feats)
+        return self.comm(feats, rounds)
+
+    def mix(
+        self, q: torch.Tensor, feats: torch.Tensor, state: torch.Tensor, mask: torch.Tensor
+    ) -> torch.Tensor:
+        """Q_tot (B,) from chosen agent Qs (B, N); IQL has no Q_tot."""
+        if self.spec.algo == "udan":
+            return self.mixer(q, feats, mask)
+        if self.spec.algo == "qmix":
+            return self.mixer(q, state, mask)
+        return q.masked_fill(~mask, 0.0).sum(-1)  # vdn
+
+
+def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list[torch.Tensor]:
+    """Rounds of many arenas as one list of (G, s) row-index tensors for :class:`GroupComm`.
+
+    Round r of every arena goes together (arenas share no agent); groups of different sizes
+    in one round are listed one size after the other, which is equivalent since they are
+    disjoint.
+    """
+    buckets: dict[tuple[int, int], list[np.ndarray]] = {}
+    for groups, offset in zip(groups_per_arena, offsets, strict=True):
+        if len(groups) == 0:
+            continue
+        for r, idx in enumerate(group_rounds(groups)):
+            buckets.setdefault((r, groups.shape[1]), []).append(groups[idx] + offset)
+    return [torch.from_numpy(np.concatenate(buckets[key])) for key in sorted(buckets)]
+
+
+class Actor:
+    """Acts for B arenas with per-slot recurrent state; forms groups every ``interval`` steps."""
+
+    def __init__(self, model: MultiAgentQ, batch: int, slots: int) -> None:
+        self.model, self.batch, self.slots = model, batch, slots
+        self.state = model.encoder.initial_state(batch * slots)
+        self.groups: list[np.ndarray] = [np.zeros((0, 0), np.int64)] * batch
+        self.t = 0
+
+    def reset(self) -> None:
+        self.state = self.model.encoder.initial_state(self.batch * self.slots)
+        self.groups = [np.zeros((0, 0), np.int64)] * self.batch
+        self.t = 0
+
+    @torch.no_grad()
+    def act(
+        self,
+        obs: np.ndarray,
+        present: np.ndarray,
+        pos: np.ndarray,
+        fresh: np.ndarray,
+        epsilon: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        """Greedy (or epsilon-greedy) actions (B, N); ``fresh`` marks slots whose agent is new."""
+        spec = self.model.spec
+        feats, self.state = self.model.encoder(
+            torch.from_numpy(obs).reshape(1, -1, spec.obs_dim),
+            self.state,
+            torch.from_numpy(fresh.reshape(1, -1)),
+        )
+        feats = feats[0]
+        rounds: list[torch.Tensor] = []
+        if spec.communicates:
+            stale = any(len(g) and not present[b][g].all() for b, g in enumerate(self.groups))
+            if self.t % spec.group_interval == 0 or stale:
+                mask = torch.from_numpy(present)
+                prob = torch.sigmoid(
+                    self.model.leader(feats.view(self.batch, self.slots, -1), mask)
+                ).numpy()
+                self.groups = [
+                    form_groups(pos[b], present[b], prob[b], spec.group_size, spec.leader_threshold)
+                    for b in range(self.batch)
+                ]
+            rounds = merge_rounds(self.groups, [b * self.slots for b in range(self.batch)])
+        q = self.model.head(feats, self.model.messages(feats, rounds))
+        actions = q.argmax(-1).numpy().reshape(self.batch, self.slots)
+        if epsilon > 0:
+            explore = rng.random(actions.shape) < epsilon
+            actions = np.where(explore, rng.integers(0, spec.n_actions, actions.shape), actions)
+        self.t += 1
+        return actions
+
+    def padded_groups(self) -> np.ndarray:
+        """This step's groups as (B, N, k) slots, -1 padded, for the replay's matrix C."""
+        k = self.model.spec.group_size
+        out = np.full((self.batch, self.slots, k), -1, dtype=np.int8)
+        for b, groups in enumerate(self.groups):
+            out[b, : len(groups), : groups.shape[1]] = groups
+        return out
+
+
+def unpad_groups(padded: np.ndarray) -> np.ndarray:
+    """Inverse of :meth:`Actor.padded_groups` for one arena: (G, s) with no -1 rows."""
+    rows = padded[(padded >= 0).any(-1)]
+    if rows.size == 0:
+        return np.zeros((0, 0), dtype=np.int64)
+    return rows[:, : int((rows[0] >= 0).sum())].astype(np.int64)
+
+
+def leader_targets(delta_q: torch.Tensor) -> torch.Tensor:
+    """Min-max normalised ΔQ (eq. 9's ΔQ̂) in [0, 1]; all equal -> 0.5."""
+    lo, hi = delta_q.min(), delta_q.max()
+    if hi - lo < 1e-8:
+        return torch.full_like(delta_q, 0.5)
+    return (delta_q - lo) / (hi - lo)
+
+
+def hypothetical_delta_q(
+    model: MultiAgentQ, feats: torch.Tensor, pos: np.ndarray, present: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """ΔQ of eq. (4) for every present agent as a leader of its k-1 nearest (features detached).
+
+    ``feats`` (M, N, H) for M arena-steps; returns (leader rows into the flat M*N agents, ΔQ).
+    """
+    m, n, _ = feats.shape
+    flat = feats.reshape(m * n, -1).detach()
+    leaders, members = [], []
+    for i in range(m):
+        groups = hypothetical_groups(pos[i], present[i], model.spec.group_size)
+        if groups.shape[1] >= 2:
+            leaders.append(groups[:, 0] + i * n)
+            members.append(groups + i * n)
+    if not leaders:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0)
+    deltas, rows = [], []
+    for size in sorted({g.shape[1] for g in members}):
+        idx = torch.from_numpy(np.concatenate([g for g in members if g.shape[1] == size]))
+        lead = np.concatenate(
+            [le for le, g in zip(leaders, members, strict=True) if g.shape[1] == size]
+        )
+        with torch.no_grad():
+            member_feats = flat[idx]
+            msg = model.comm.encode_groups(member_feats)
+            q_c = model.head(member_feats, msg).max(-1).values
+            q_s = model.head(member_feats, torch.zeros_like(msg)).max(-1).values
+        deltas.append((q_c - q_s).mean(-1))
+        rows.append(torch.from_numpy(lead))
+    return torch.cat(rows), torch.cat(deltas)

@@ -1,0 +1,487 @@
+"""``udan-train``: GCTDE training of UDAN (or a baseline) on an arena task, top to bottom.
+
+Loop: roll out ``n_envs`` whole episodes at once with an epsilon-greedy :class:`Actor` (N drawn
+per episode; groups formed every ``group_interval`` steps and stored as the paper's matrix C),
+push them to an episode replay, then run ``updates_per_rollout`` updates on batches of whole
+episodes: double-Q TD on Q_tot with a target network (eqs. 19-21) plus, for UDAN, the leader
+classifier's BCE against min-max normalised ΔQ (eqs. 4-9). Checkpoints hold everything needed to
+resume exactly (the replay sits beside them in ``replay.npz``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import copy
+import csv
+import dataclasses
+import inspect
+import itertools
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from udan.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from udan.envs import EnvConfigError, make_vec
+from udan.envs.arena import ArenaBatch
+from udan.learner import (
+    ALGOS,
+    Actor,
+    ModelSpec,
+    MultiAgentQ,
+    hypothetical_delta_q,
+    leader_targets,
+    merge_rounds,
+    unpad_groups,
+)
+
+
+@dataclass
+class TrainConfig:
+    """Every training choice; each field is a ``udan-train`` flag of the same name."""
+
+    algo: str = "udan"
+    """Learner: udan, qmix, vdn or iql."""
+    env: str = "arena/find_water"
+    """Arena task to train on."""
+    agents: str = "1-5"
+    """Agents per episode, drawn uniformly from this range (baselines: a fixed count, e.g. 3)."""
+    obstacles: str = "0-14"
+    """Obstacles per episode, drawn uniformly from this range."""
+    steps: float = 2e6
+    """Environment steps to train for (one arena stepping once is one step)."""
+    seed: int = 0
+    """Seed of environments, exploration and weights."""
+    out: str = "runs/default"
+    """Run folder: checkpoint.pt, replay.npz, config.json, progress.csv, TensorBoard events."""
+    n_envs: int = 16
+    """Episodes rolled out in parallel per rollout."""
+    batch_episodes: int = 32
+    """Whole episodes per update batch."""
+    updates_per_rollout: int = 4
+    """Gradient updates after each rollout."""
+    buffer_episodes: int = 4000
+    """Replay capacity in whole episodes."""
+    lr: float = 5e-4
+    """Adam learning rate."""
+    gamma: float = 0.95
+    """Discount factor (about a 20-step horizon: the arena is 9x9)."""
+    eps_start: float = 1.0
+    """Initial exploration rate."""
+    eps_end: float = 0.05
+    """Final exploration rate."""
+    eps_fraction: float = 0.4
+    """Fraction of training over which exploration decays linearly."""
+    target_interval: int = 200
+    """Updates between target-network copies."""
+    grad_clip: float = 10.0
+    """Gradient norm clip."""
+    hidden: int = 64
+    """Width of the agent network and its LSTM."""
+    attn_dim: int = 32
+    """Query/key width of the leader self-attention."""
+    mix_dim: int = 32
+    """Hidden width of the mixer."""
+    group_size: int = 3
+    """k: a leader and its k-1 nearest agents form a group."""
+    group_interval: int = 5
+    """T: steps between group formations."""
+    leader_threshold: float = 0.5
+    """Leader probability above which an agent leads a group."""
+    leader_coef: float = 1.0
+    """Weight of the leader classifier's BCE loss."""
+    checkpoint_every: float = 1e5
+    """Environment steps between checkpoints (and at the end)."""
+    torch_threads: int = 1
+    """Intra-op threads for torch (1 is fastest for these small networks on 2 cores)."""
+
+
+# A resumed run continues exactly when its config is unchanged; only these may differ (a longer
+# --steps extends a finished run, with the exploration schedule stretched accordingly).
+RESUMABLE_FIELDS = {"steps", "out"}
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings of a dataclass (the string under each field), for ``--help``."""
+    tree = ast.parse(inspect.getsource(cls))
+    body = tree.body[0].body
+    docs = {}
+    for prev, node in itertools.pairwise(body):
+        if isinstance(prev, ast.AnnAssign) and isinstance(node, ast.Expr):
+            docs[prev.target.id] = node.value.value
+    return docs
+
+
+# ---------------------------------------------------------------------------------- replay
+class EpisodeReplay:
+    """Ring buffer of whole episodes; observations as float16 (exact for the arena's values)."""
+
+    def __init__(
+        self, capacity: int, steps: int, slots: int, obs_dim: int, k: int, state_dim: int
+    ) -> None:
+        t1 = steps + 1
+        self.capacity, self.size, self.next = capacity, 0, 0
+        self.data = {
+            "obs": np.zeros((capacity, t1, slots, obs_dim), np.float16),
+            "state": np.zeros((capacity, t1, state_dim), np.float16),
+            "actions": np.zeros((capacity, steps, slots), np.int8),
+            "rewards": np.zeros((capacity, steps, slots), np.float32),
+            "present": np.zeros((capacity, t1, slots), bool),
+            "fresh": np.zeros((capacity, t1, slots), bool),
+            "pos": np.zeros((capacity, t1, slots, 2), np.int8),
+            "groups": np.full((capacity, t1, slots, k), -1, np.int8),
+        }
+
+    def add(self, episodes: dict[str, np.ndarray]) -> None:
+        n = len(episodes["obs"])
+        idx = (self.next + np.arange(n)) % self.capacity
+        for key, value in episodes.items():
+            self.data[key][idx] = value
+        self.next = (self.next + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        idx = rng.integers(0, self.size, size=n)
+        return {key: value[idx] for key, value in self.data.items()}
+
+    def save(self, path: Path) -> None:
+        np.savez(path, size=self.size, next=self.next, **self.data)
+
+    def load(self, path: Path) -> None:
+        with np.load(path) as f:
+            self.size, self.next = int(f["size"]), int(f["next"])
+            for key in self.data:
+                self.data[key][...] = f[key]
+
+
+# ---------------------------------------------------------------------------------- rollout
+def rollout(
+    env: ArenaBatch, actor: Actor, epsilon: float, rng: np.random.Generator, with_state: bool
+) -> dict[str, np.ndarray]:
+    """Play one whole episode in every arena; returns arrays shaped (B, T(+1), ...)."""
+    steps = env.config.max_steps
+    obs = env.reset()
+    actor.reset()
+    rec: dict[str, list] = {
+        k: [] for k in ("obs", "state", "actions", "rewards", "present", "fresh", "pos", "groups")
+    }
+
+    def record_observation() -> None:
+        rec["obs"].append(obs)
+        rec["state"].append(env.global_state() if with_state else np.zeros((env.batch, 0)))
+        rec["present"].append(env.present.copy())
+        rec["fresh"].append(env.joined.copy())
+        rec["pos"].append(env.pos.copy())
+
+    for _ in range(steps):
+        record_observation()
+        actions = actor.act(obs, env.present, env.pos, env.joined, epsilon, rng)
+        rec["groups"].append(actor.padded_groups())
+        rec["actions"].append(actions)
+        obs, reward, _ = env.step(actions)
+        rec["rewards"].append(reward)
+    record_observation()
+    rec["groups"].append(np.full_like(rec["groups"][-1], -1))
+    return {k: np.stack(v, axis=1) for k, v in rec.items()}
+
+
+# ---------------------------------------------------------------------------------- update
+def unroll(model: MultiAgentQ, obs: torch.Tensor, fresh: torch.Tensor) -> torch.Tensor:
+    """Agent features over whole episodes: obs (E, T1, N, D) -> (T1, E*N, H)."""
+    e, t1, n, d = obs.shape
+    seq = obs.permute(1, 0, 2, 3).reshape(t1, e * n, d)
+    feats, _ = model.encoder(
+        seq, model.encoder.initial_state(e * n), fresh.permute(1, 0, 2).reshape(t1, e * n)
+    )
+    return feats
+
+
+def stored_rounds(groups: np.ndarray) -> list[torch.Tensor]:
+    """The acting-time groups (C) of a batch (E, T1, N, k) as rounds over (T1, E*N) rows."""
+    e, t1, n, _ = groups.shape
+    per_arena, offsets = [], []
+    for t in range(t1):
+        for i in range(e):
+            g = unpad_groups(groups[i, t])
+            if len(g):
+                per_arena.append(g)
+                offsets.append((t * e + i) * n)
+    return merge_rounds(per_arena, offsets)
+
+
+def q_values(model: MultiAgentQ, feats: torch.Tensor, rounds: list[torch.Tensor]) -> torch.Tensor:
+    flat = feats.reshape(-1, feats.shape[-1])
+    return model.head(flat, model.messages(flat, rounds)).view(*feats.shape[:2], -1)
+
+
+def update(
+    model: MultiAgentQ,
+    target: MultiAgentQ,
+    optim: torch.optim.Optimizer,
+    batch: dict[str, np.ndarray],
+    cfg: TrainConfig,
+) -> dict[str, float]:
+    """One gradient step on a batch of whole episodes; returns the losses."""
+    e, t1, n = batch["present"].shape
+    steps = t1 - 1
+    obs = torch.from_numpy(batch["obs"].astype(np.float32))
+    fresh = torch.from_numpy(batch["fresh"])
+    present = torch.from_numpy(batch["present"]).permute(1, 0, 2)  # (T1, E, N)
+    actions = torch.from_numpy(batch["actions"].astype(np.int64)).permute(1, 0, 2)
+    rewards = torch.from_numpy(batch["rewards"]).permute(1, 0, 2)  # (T, E, N)
+    state = torch.from_numpy(batch["state"].astype(np.float32)).permute(1, 0, 2)
+    rounds = stored_rounds(batch["groups"]) if model.spec.communicates else []
+
+    feats = unroll(model, obs, fresh)  # (T1, E*N, H)
+    q = q_values(model, feats, rounds).view(t1, e, n, -1)
+    with torch.no_grad():
+        target_feats = unroll(target, obs, fresh)
+        target_q = q_values(target, target_feats, rounds).view(t1, e, n, -1)
+        best_next = q[1:].argmax(-1, keepdim=True)  # double Q: online argmax, target value
+        q_next = target_q[1:].gather(-1, best_next).squeeze(-1)  # (T, E, N)
+    q_taken = q[:-1].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+    # Arena episodes end only by the time limit, which agents cannot observe: bootstrap through
+    # it (Pardo et al., "Time Limits in RL"), so a state's value does not depend on the clock.
+    # An agent that left has no next value.
+    alive, alive_next = present[:-1], present[1:]
+    if model.spec.algo == "iql":
+        y = rewards + cfg.gamma * q_next.masked_fill(~alive_next, 0.0)
+        td_loss = ((q_taken - y)[alive] ** 2).mean()
+    else:
+        h = feats.shape[-1]
+        feats_t = feats.view(t1, e, n, h)
+        q_tot = model.mix(
+            q_taken.reshape(-1, n),
+            feats_t[:-1].reshape(-1, n, h),
+            state[:-1].reshape(steps * e, -1),
+            alive.reshape(-1, n),
+        )
+        with torch.no_grad():
+            next_feats = target_feats.view(t1, e, n, h)[1:]
+            next_tot = target.mix(
+                q_next.reshape(-1, n),
+                next_feats.reshape(-1, n, h),
+                state[1:].reshape(steps * e, -1),
+                alive_next.reshape(-1, n),
+            )
+        y = rewards.sum(-1).reshape(-1) + cfg.gamma * next_tot
+        td_loss = F.mse_loss(q_tot, y)
+    loss = td_loss
+    losses = {"td_loss": td_loss.item()}
+    if model.spec.communicates:
+        formed = torch.arange(0, t1, model.spec.group_interval)
+        f = feats.view(t1, e, n, -1)[formed].reshape(len(formed) * e, n, -1)
+        pos = batch["pos"][:, formed.numpy()].transpose(1, 0, 2, 3).reshape(-1, n, 2)
+        alive_f = batch["present"][:, formed.numpy()].transpose(1, 0, 2).reshape(-1, n)
+        rows, delta = hypothetical_delta_q(model, f, pos, alive_f)
+        if len(rows):
+            logits = model.leader(f.detach(), torch.from_numpy(alive_f)).reshape(-1)[rows]
+            leader_loss = F.binary_cross_entropy_with_logits(logits, leader_targets(delta))
+            loss = loss + cfg.leader_coef * leader_loss
+            losses["leader_loss"] = leader_loss.item()
+    optim.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    optim.step()
+    return losses
+
+
+# ---------------------------------------------------------------------------------- main loop
+def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
+    """The environment batch and a fresh model for ``cfg`` (validates algo and env)."""
+    if cfg.algo not in ALGOS:
+        raise EnvConfigError(f"unknown algo {cfg.algo!r}; known: {', '.join(ALGOS)}")
+    if not cfg.env.startswith("arena/"):
+        raise EnvConfigError(f"udan-train trains on arena tasks; {cfg.env!r} is not one")
+    env = make_vec(
+        cfg.env, batch=cfg.n_envs, seed=cfg.seed, agents=cfg.agents, obstacles=cfg.obstacles
+    )
+    if cfg.algo == "qmix" and env.config.agents[0] != env.config.agents[1]:
+        raise EnvConfigError("qmix mixes a fixed number of agents: give --agents a single count")
+    spec = ModelSpec(
+        algo=cfg.algo,
+        obs_dim=env.spec.size,
+        n_actions=5,
+        hidden=cfg.hidden,
+        attn_dim=cfg.attn_dim,
+        mix_dim=cfg.mix_dim,
+        group_size=cfg.group_size,
+        group_interval=cfg.group_interval,
+        leader_threshold=cfg.leader_threshold,
+        state_dim=env.global_state().shape[1] if cfg.algo == "qmix" else 0,
+        mix_agents=env.slots if cfg.algo == "qmix" else 0,
+    )
+    torch.manual_seed(cfg.seed)
+    return env, MultiAgentQ(spec)
+
+
+def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
+    """Train until ``cfg.steps``; returns the checkpoint path."""
+    torch.set_num_threads(cfg.torch_threads)
+    out = Path(cfg.out)
+    ckpt_path, replay_path = out / "checkpoint.pt", out / "replay.npz"
+    env, model = build(cfg)
+    target = copy.deepcopy(model)
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    rng = np.random.default_rng(cfg.seed)
+    replay = EpisodeReplay(
+        cfg.buffer_episodes,
+        env.config.max_steps,
+        env.slots,
+        env.spec.size,
+        cfg.group_size,
+        model.spec.state_dim,
+    )
+    progress = {"steps": 0, "episodes": 0, "updates": 0, "seconds": 0.0}
+    if resume:
+        ckpt = load_checkpoint(ckpt_path)
+        saved = ckpt["config"]
+        diff = sorted(
+            k for k, v in asdict(cfg).items() if k not in RESUMABLE_FIELDS and saved.get(k) != v
+        )
+        if diff:
+            raise CheckpointError(f"--resume: config differs from the run's in {', '.join(diff)}")
+        model.load_state_dict(ckpt["weights"])
+        target.load_state_dict(ckpt["target_weights"])
+        optim.load_state_dict(ckpt["optimizer"])
+        progress = ckpt["progress"]
+        rng.bit_generator.state = ckpt["rng"]["train"]
+        env.rng.bit_generator.state = ckpt["rng"]["env"]
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        replay.load(replay_path)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    actor = Actor(model, env.batch, env.slots)
+    writer = _tensorboard(out)
+    csv_file = (out / "progress.csv").open("a", newline="")
+    csv_log = csv.writer(csv_file)
+    if progress["steps"] == 0:
+        csv_log.writerow(
+            [
+                "steps",
+                "episodes",
+                "updates",
+                "epsilon",
+                "return",
+                "td_loss",
+                "leader_loss",
+                "steps_per_s",
+            ]
+        )
+    returns: list[float] = []
+    next_ckpt = progress["steps"] + cfg.checkpoint_every
+    started, steps_at_start = time.perf_counter(), progress["steps"]
+    seconds_before = progress["seconds"]
+
+    def checkpoint() -> None:
+        progress["seconds"] = seconds_before + time.perf_counter() - started
+        rng_state = {
+            "train": rng.bit_generator.state,
+            "env": env.rng.bit_generator.state,
+            "torch": torch.get_rng_state(),
+        }
+        save_checkpoint(ckpt_path, model, target, optim, cfg, env, progress, rng_state)
+        replay.save(replay_path)
+
+    while progress["steps"] < cfg.steps:
+        frac = min(progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
+        epsilon = cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+        episodes = rollout(env, actor, epsilon, rng, with_state=model.spec.state_dim > 0)
+        replay.add(episodes)
+        per_agent = env.episode_return.sum(1) / np.maximum(env.present.sum(1), 1)
+        returns = (returns + per_agent.tolist())[-200:]
+        progress["steps"] += env.batch * env.config.max_steps
+        progress["episodes"] += env.batch
+        losses: dict[str, float] = {}
+        if replay.size >= cfg.batch_episodes:
+            for _ in range(cfg.updates_per_rollout):
+                losses = update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
+                progress["updates"] += 1
+                if progress["updates"] % cfg.target_interval == 0:
+                    target.load_state_dict(model.state_dict())
+        rate = (progress["steps"] - steps_at_start) / (time.perf_counter() - started)
+        row = {"return": float(np.mean(returns)), "epsilon": epsilon, "steps_per_s": rate, **losses}
+        csv_log.writerow(
+            [
+                progress["steps"],
+                progress["episodes"],
+                progress["updates"],
+                f"{epsilon:.3f}",
+                f"{row['return']:.3f}",
+                f"{losses.get('td_loss', float('nan')):.4f}",
+                f"{losses.get('leader_loss', float('nan')):.4f}",
+                f"{rate:.0f}",
+            ]
+        )
+        if writer is not None:
+            for key, value in row.items():
+                writer.add_scalar(f"train/{key}", value, progress["steps"])
+        log(
+            f"\r[{cfg.algo}] {progress['steps'] / cfg.steps:6.1%} steps {progress['steps']:,} "
+            f"return {row['return']:6.2f} eps {epsilon:.2f} {rate:,.0f} steps/s",
+            end="",
+        )
+        if progress["steps"] >= next_ckpt or progress["steps"] >= cfg.steps:
+            checkpoint()
+            next_ckpt = progress["steps"] + cfg.checkpoint_every
+    log("")
+    csv_file.close()
+    if writer is not None:
+        writer.close()
+    return ckpt_path
+
+
+def _tensorboard(out: Path):
+    """A TensorBoard writer when tensorboard is installed (it is, with the ``train`` extra)."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(log_dir=str(out / "tb"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    docs = field_docs(TrainConfig)
+    parser = argparse.ArgumentParser(prog="udan-train", description=__doc__.splitlines()[0])
+    for f in dataclasses.fields(TrainConfig):
+        kind = float if f.type in ("float", float) else int if f.type in ("int", int) else str
+        parser.add_argument(
+            f"--{f.name.replace('_', '-')}",
+            dest=f.name,
+            type=kind,
+            default=f.default,
+            help=f"{docs.get(f.name, '')} (default: %(default)s)",
+        )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out exactly where its checkpoint left off",
+    )
+    args = vars(parser.parse_args(argv))
+    resume = args.pop("resume")
+    cfg = TrainConfig(**args)
+    try:
+        if not resume and (Path(cfg.out) / "checkpoint.pt").exists():
+            raise CheckpointError(f"{cfg.out} already holds a run; use --resume or another --out")
+        if not Path(cfg.out).parent.exists():
+            raise CheckpointError(f"--out: folder {Path(cfg.out).parent} does not exist")
+        path = train(cfg, resume=resume, log=lambda *a, **k: print(*a, **k, flush=True))
+    except (EnvConfigError, CheckpointError) as err:
+        print(f"udan-train: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nudan-train: interrupted; the last checkpoint is kept", file=sys.stderr)
+        return 130
+    print(f"checkpoint: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
