@@ -30,7 +30,7 @@ def quiet(*args, **kwargs):
     pass
 
 
-@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("algo", [a for a in ALGOS if a != "coma"])
 def test_every_algo_trains_and_its_checkpoint_acts(tmp_path, algo):
     agents = "3" if algo == "qmix" else "1-4"
     cfg = TrainConfig(algo=algo, agents=agents, steps=800, out=str(tmp_path / algo), **TINY)

@@ -23,8 +23,14 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable, from another format, or does not fit."""
 
 
-def save_checkpoint(path: Path, model, target, optim, cfg, env, progress: dict, rng: dict) -> None:
-    """Write atomically (temp file + rename), so an interrupted save never corrupts a run."""
+def save_checkpoint(
+    path: Path, model, target, optim, cfg, env, progress: dict, rng: dict, extra: dict | None = None
+) -> None:
+    """Write atomically (temp file + rename), so an interrupted save never corrupts a run.
+
+    ``target`` may be None (on-policy learners); ``extra`` holds algorithm-specific entries
+    (e.g. COMA's critic) under keys of their own.
+    """
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -34,10 +40,11 @@ def save_checkpoint(path: Path, model, target, optim, cfg, env, progress: dict, 
         "model_spec": dataclasses.asdict(model.spec),
         "config": dataclasses.asdict(cfg),
         "weights": model.state_dict(),
-        "target_weights": target.state_dict(),
+        "target_weights": None if target is None else target.state_dict(),
         "optimizer": optim.state_dict(),
         "progress": dict(progress),
         "rng": rng,
+        **(extra or {}),
     }
     tmp = path.with_suffix(".tmp")
     torch.save(payload, tmp)

@@ -17,7 +17,7 @@ from torch.nn import functional as F
 from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
-ALGOS = ("udan", "qmix", "vdn", "iql")
+ALGOS = ("udan", "qmix", "vdn", "iql", "coma")
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,11 @@ class QMixer(nn.Module):
 
 
 class MultiAgentQ(nn.Module):
-    """Shared agent network (+ communication for UDAN) and the algorithm's mixer."""
+    """Shared agent network (+ communication for UDAN) and the algorithm's mixer.
+
+    For COMA the same network is the actor: its outputs are policy logits, whose argmax is the
+    greedy action, so acting, evaluation and export treat every algorithm alike.
+    """
 
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
@@ -92,7 +96,9 @@ class MultiAgentQ(nn.Module):
             return self.mixer(q, feats, mask)
         if self.spec.algo == "qmix":
             return self.mixer(q, state, mask)
-        return q.masked_fill(~mask, 0.0).sum(-1)  # vdn
+        if self.spec.algo == "vdn":
+            return q.masked_fill(~mask, 0.0).sum(-1)
+        raise ValueError(f"{self.spec.algo} has no mixer")
 
 
 def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list[torch.Tensor]:

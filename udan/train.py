@@ -47,7 +47,7 @@ class TrainConfig:
     """Every training choice; each field is a ``udan-train`` flag of the same name."""
 
     algo: str = "udan"
-    """Learner: udan, qmix, vdn or iql."""
+    """Learner: udan, qmix, vdn, iql or coma."""
     env: str = "arena/find_water"
     """Arena task to train on."""
     agents: str = "1-5"
@@ -323,6 +323,10 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
 
 def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     """Train until ``cfg.steps``; returns the checkpoint path."""
+    if cfg.algo == "coma":  # on-policy actor-critic: its own loop, same config and checkpoint
+        from udan.coma import train_coma
+
+        return train_coma(cfg, resume=resume, log=log)
     torch.set_num_threads(cfg.torch_threads)
     out = Path(cfg.out)
     ckpt_path, replay_path = out / "checkpoint.pt", out / "replay.npz"
