@@ -7,6 +7,7 @@ from udan.envs.grouping import (
     form_groups,
     group_rounds,
     hypothetical_groups,
+    nearest,
 )
 
 
@@ -58,3 +59,19 @@ def test_hypothetical_groups_and_the_communication_matrix():
     assert sorted(g[0] for g in groups) == [0, 1, 2] and len(groups) == 3
     c = communication_matrix(np.array([[0, 1]]), 3)
     assert c.tolist() == [[True, True, False], [True, True, False], [False, False, False]]
+
+
+def test_nearest_is_itself_first_then_by_distance_then_slot_and_matches_a_full_sort():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n = int(rng.integers(1, 30))
+        pos = rng.integers(0, 6, size=(n, 2))
+        present = rng.random(n) < 0.8
+        count = int(rng.integers(1, 10))
+        got = nearest(pos, present, count)
+        slots = np.flatnonzero(present)
+        assert (got[~present] == -1).all()
+        for i in slots:
+            others = sorted((abs(pos[i] - pos[j]).sum(), j) for j in slots if j != i)
+            want = [i, *[j for _, j in others][: min(count, len(slots)) - 1]]
+            assert got[i].tolist() == want

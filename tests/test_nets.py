@@ -29,15 +29,18 @@ def test_padded_agents_contribute_nothing_to_the_mixer():
     assert torch.allclose(mixer(q, feats, mask), mixer(padded_q, padded_f, padded_mask))
 
 
-def test_leader_scores_ignore_padded_agents():
+def test_leader_attention_covers_only_the_neighbourhood():
     scorer = LeaderScorer(H, 8)
-    feats = torch.randn(1, 3, H)
-    mask = torch.tensor([[True, True, False]])
-    logits = scorer(feats, mask)
-    assert torch.isinf(logits[0, 2]) and torch.isfinite(logits[0, :2]).all()
+    feats = torch.randn(4, H)
+    neighbours = torch.tensor([[0, 1, -1], [1, 0, -1], [2, 3, -1], [3, 2, -1]])
+    logits = scorer(feats, neighbours)
+    assert logits.shape == (4,) and torch.isfinite(logits).all()
     other = feats.clone()
-    other[0, 2] = torch.randn(H) * 10
-    assert torch.allclose(scorer(other, mask)[0, :2], logits[0, :2])
+    other[2:] += torch.randn(2, H) * 10  # agents outside 0's and 1's neighbourhood
+    assert torch.allclose(scorer(other, neighbours)[:2], logits[:2])
+    assert not torch.allclose(scorer(other, neighbours)[2:], logits[2:])
+    absent = scorer(feats, torch.tensor([[-1, -1, -1]] * 4))
+    assert torch.isfinite(absent).all(), "rows of absent slots stay finite"
 
 
 def test_a_bridge_carries_information_from_its_first_group_into_its_second():

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups
+from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, nearest
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
 ALGOS = ("udan", "qmix", "vdn", "iql", "coma")
@@ -33,6 +33,8 @@ class ModelSpec:
     group_size: int = 3
     group_interval: int = 5
     leader_threshold: float = 0.5
+    attention_neighbours: int = 8
+    """K: each agent's leader attention covers itself and its K-1 nearest agents."""
     state_dim: int = 0
     mix_agents: int = 0
     """QMIX only: the fixed number of agents its hypernetwork mixes (trained at fixed N)."""
@@ -101,6 +103,19 @@ class MultiAgentQ(nn.Module):
         raise ValueError(f"{self.spec.algo} has no mixer")
 
 
+def neighbour_rows(pos: np.ndarray, present: np.ndarray, count: int) -> torch.Tensor:
+    """Attention neighbourhoods of M arenas as rows into their flattened (M*N) agents.
+
+    ``pos`` (M, N, 2), ``present`` (M, N) -> (M*N, count) long, -1 where there is no neighbour.
+    """
+    m, n = present.shape
+    out = np.full((m, n, count), -1, dtype=np.int64)
+    for i in range(m):
+        near = nearest(pos[i], present[i], count)
+        out[i, :, : near.shape[1]] = np.where(near >= 0, near + i * n, -1)
+    return torch.from_numpy(out.reshape(m * n, count))
+
+
 def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list[torch.Tensor]:
     """Rounds of many arenas as one list of (G, s) row-index tensors for :class:`GroupComm`.
 
@@ -153,10 +168,9 @@ class Actor:
         if spec.communicates:
             stale = any(len(g) and not present[b][g].all() for b, g in enumerate(self.groups))
             if self.t % spec.group_interval == 0 or stale:
-                mask = torch.from_numpy(present)
-                prob = torch.sigmoid(
-                    self.model.leader(feats.view(self.batch, self.slots, -1), mask)
-                ).numpy()
+                neighbours = neighbour_rows(pos, present, spec.attention_neighbours)
+                logits = self.model.leader(feats, neighbours)
+                prob = torch.sigmoid(logits).view(self.batch, self.slots).numpy()
                 self.groups = [
                     form_groups(pos[b], present[b], prob[b], spec.group_size, spec.leader_threshold)
                     for b in range(self.batch)

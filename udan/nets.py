@@ -61,7 +61,11 @@ class AgentEncoder(nn.Module):
 
 
 class LeaderScorer(nn.Module):
-    """Scaled dot-product self-attention over the present agents of an arena, FC, sigmoid."""
+    """Scaled dot-product self-attention of each agent over its neighbours, FC, sigmoid.
+
+    Each agent attends over itself and its nearest agents (``neighbours``, from
+    :func:`udan.envs.grouping.nearest`): what a car could hear, and O(N) for any fleet size.
+    """
 
     def __init__(self, hidden: int, attn_dim: int) -> None:
         super().__init__()
@@ -70,14 +74,18 @@ class LeaderScorer(nn.Module):
         self.value = nn.Linear(hidden, attn_dim)
         self.out = nn.Linear(attn_dim + hidden, 1)
 
-    def forward(self, feats: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """``feats`` (B, N, H), ``mask`` (B, N) bool -> leader logits (B, N); padded slots -inf."""
-        q, k, v = self.query(feats), self.key(feats), self.value(feats)
-        scores = q @ k.transpose(1, 2) / k.shape[-1] ** 0.5
-        scores = scores.masked_fill(~mask[:, None, :], float("-inf"))
-        attn = torch.softmax(scores, dim=-1).nan_to_num(0.0)  # rows of padded slots are all -inf
-        logits = self.out(torch.cat([attn @ v, feats], dim=-1)).squeeze(-1)
-        return logits.masked_fill(~mask, float("-inf"))
+    def forward(self, feats: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+        """``feats`` (M, H) of all agents, ``neighbours`` (M, K) rows into them (-1 = none,
+        column 0 = the agent itself) -> leader logits (M,)."""
+        valid = neighbours >= 0
+        valid[:, 0] = True  # itself (an absent slot's row is ignored, but must stay finite)
+        keys = self.key(feats)[neighbours.clamp(min=0)]  # (M, K, A)
+        values = self.value(feats)[neighbours.clamp(min=0)]
+        q = self.query(feats)[:, None, :]  # (M, 1, A)
+        scores = (q * keys).sum(-1) / keys.shape[-1] ** 0.5
+        attn = torch.softmax(scores.masked_fill(~valid, float("-inf")), dim=-1)
+        attended = (attn[..., None] * values).sum(1)
+        return self.out(torch.cat([attended, feats], dim=-1)).squeeze(-1)
 
 
 class GroupComm(nn.Module):

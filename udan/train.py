@@ -38,6 +38,7 @@ from udan.learner import (
     hypothetical_delta_q,
     leader_targets,
     merge_rounds,
+    neighbour_rows,
     unpad_groups,
 )
 
@@ -276,12 +277,13 @@ def update(
     losses = {"td_loss": td_loss.item()}
     if model.spec.communicates:
         formed = torch.arange(0, t1, model.spec.group_interval)
-        f = feats.view(t1, e, n, -1)[formed].reshape(len(formed) * e, n, -1)
+        f = feats.view(t1, e, n, -1)[formed].reshape(len(formed) * e * n, -1).detach()
         pos = batch["pos"][:, formed.numpy()].transpose(1, 0, 2, 3).reshape(-1, n, 2)
         alive_f = batch["present"][:, formed.numpy()].transpose(1, 0, 2).reshape(-1, n)
-        rows, delta = hypothetical_delta_q(model, f, pos, alive_f)
+        rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f)
         if len(rows):
-            logits = model.leader(f.detach(), torch.from_numpy(alive_f)).reshape(-1)[rows]
+            neighbours = neighbour_rows(pos, alive_f, model.spec.attention_neighbours)
+            logits = model.leader(f, neighbours)[rows]
             leader_loss = F.binary_cross_entropy_with_logits(logits, leader_targets(delta))
             loss = loss + cfg.leader_coef * leader_loss
             losses["leader_loss"] = leader_loss.item()

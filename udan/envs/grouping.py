@@ -13,6 +13,32 @@ from __future__ import annotations
 import numpy as np
 
 
+def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
+    """Each agent's ``count`` nearest present agents, itself first: (N, min(count, n)) slots.
+
+    Grid (Manhattan) distance, ties broken by slot, so training and the edge agree exactly.
+    Rows of absent agents are -1. Linear-time selection (argpartition) per row.
+    """
+    n_slots = len(present)
+    slots = np.flatnonzero(present)
+    size = min(count, slots.size)
+    out = np.full((n_slots, size), -1, dtype=np.int64)
+    if size == 0:
+        return out
+    dist = np.abs(pos[slots, None, :] - pos[None, slots, :]).sum(-1)
+    key = dist * n_slots + slots[None, :]  # distance first, then slot: unique keys
+    np.fill_diagonal(key, -1)  # itself first
+    part = (
+        np.argpartition(key, size - 1, axis=1)[:, :size]
+        if size < slots.size
+        else (np.broadcast_to(np.arange(slots.size), key.shape))
+    )
+    picked = np.take_along_axis(key, part, axis=1)
+    order = np.take_along_axis(part, np.argsort(picked, axis=1), axis=1)
+    out[slots] = slots[order]
+    return out
+
+
 def form_groups(
     pos: np.ndarray, present: np.ndarray, leader_prob: np.ndarray, k: int, threshold: float
 ) -> np.ndarray:
@@ -27,15 +53,15 @@ def form_groups(
     if size < 2 or leaders.size == 0:
         return np.zeros((0, size), dtype=np.int64)
     leaders = leaders[np.argsort(-leader_prob[leaders], kind="stable")]
-    dist = np.abs(pos[leaders, None, :] - pos[None, slots, :]).sum(-1)  # (L, n)
-    dist[np.arange(leaders.size), np.searchsorted(slots, leaders)] = -1  # the leader itself first
-    nearest = np.argsort(dist, axis=1, kind="stable")[:, :size]
-    return slots[nearest]
+    return nearest(pos, present, k)[leaders]
 
 
 def hypothetical_groups(pos: np.ndarray, present: np.ndarray, k: int) -> np.ndarray:
     """Every present agent as a leader with its k-1 nearest (the leader classifier's targets)."""
-    return form_groups(pos, present, np.ones(len(present)), k, threshold=0.0)
+    slots = np.flatnonzero(present)
+    if min(k, slots.size) < 2:
+        return np.zeros((0, min(k, slots.size)), dtype=np.int64)
+    return nearest(pos, present, k)[slots]
 
 
 def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
