@@ -85,9 +85,9 @@ def test_an_interrupted_run_resumes_exactly(tmp_path):
 
 
 def test_a_range_of_agents_is_a_one_line_error(tmp_path):
+    args = ["--algo", "coma", "--agents", "1-5", "--steps", "10", "--out", tmp_path / "r"]
     proc = subprocess.run(
-        [BIN / "udan-train", "--algo", "coma", "--agents", "1-5", "--steps", "10"]
-        + ["--out", str(tmp_path / "r")],
+        [BIN / "udan-train", *map(str, args)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -98,13 +98,17 @@ def test_a_range_of_agents_is_a_one_line_error(tmp_path):
 
 
 def test_learns_to_find_water_alone(tmp_path):
-    """One agent, no obstacles: random scores ~0.7, going straight up ~4, the oracle ~45."""
+    """One agent, no obstacles: random scores ~0.7, always going up ~4, the oracle ~45.
+
+    Seed 0 scores 43; seeds 1-2 scored 27 and 40. Without the entropy bonus it stalls at ~4.
+    """
     cfg = TrainConfig(
         algo="coma",
         agents="1",
         obstacles="0",
         steps=100000,
         n_envs=8,
+        lr=1e-3,
         eps_start=0.5,
         eps_fraction=0.2,
         out=str(tmp_path / "r"),

@@ -15,11 +15,7 @@ critic width); the replay fields do not apply to an on-policy learner.
 
 from __future__ import annotations
 
-import csv
-import json
-import time
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -27,15 +23,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from udan.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from udan.envs import EnvConfigError
 from udan.learner import Actor
-from udan.train import RESUMABLE_FIELDS, TrainConfig, _tensorboard, build, q_values, rollout, unroll
-
-TD_LAMBDA = 0.8
-"""lambda of the critic's TD(lambda) returns (the COMA paper's and pymarl's value)."""
-ENTROPY_COEF = 0.01
-"""Weight of the actor's entropy bonus (EPyMARL's COMA has one; it keeps the policy exploring)."""
+from udan.train import Run, TrainConfig, build, q_values, rollout, unroll
 
 
 class Critic(nn.Module):
@@ -102,7 +92,6 @@ def counterfactual_advantage(
 class SamplingActor(Actor):
     """:class:`Actor` that samples from :func:`policy` instead of acting epsilon-greedily."""
 
-    @torch.no_grad()
     def act(
         self,
         obs: np.ndarray,
@@ -112,23 +101,15 @@ class SamplingActor(Actor):
         epsilon: float = 0.0,
         rng: np.random.Generator | None = None,
     ) -> np.ndarray:
-        feats, self.state = self.model.encoder(
-            torch.from_numpy(obs).reshape(1, -1, self.model.spec.obs_dim),
-            self.state,
-            torch.from_numpy(fresh.reshape(1, -1)),
-        )
-        probs = policy(self.model.head(feats[0], torch.zeros_like(feats[0])), epsilon).numpy()
+        probs = policy(self.values(obs, present, pos, fresh), epsilon).numpy()
         draw = rng.random((len(probs), 1))
         actions = (probs.cumsum(-1) < draw).sum(-1).clip(max=probs.shape[-1] - 1)
-        self.t += 1
         return actions.reshape(self.batch, self.slots)
 
 
 def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) -> Path:
     """Train COMA until ``cfg.steps``; returns the checkpoint path (run folder as udan-train's)."""
     torch.set_num_threads(cfg.torch_threads)
-    out = Path(cfg.out)
-    ckpt_path = out / "checkpoint.pt"
     env, model = build(cfg)
     if env.config.agents[0] != env.config.agents[1]:
         raise EnvConfigError("coma's critic takes a fixed number of agents: give --agents a count")
@@ -138,74 +119,20 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
     target_critic.load_state_dict(critic.state_dict())
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     critic_optim = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
-    rng = np.random.default_rng(cfg.seed)
-    progress = {"steps": 0, "episodes": 0, "updates": 0, "seconds": 0.0}
-    if resume:
-        ckpt = load_checkpoint(ckpt_path)
-        saved = ckpt["config"]
-        diff = sorted(
-            k for k, v in asdict(cfg).items() if k not in RESUMABLE_FIELDS and saved.get(k) != v
-        )
-        if diff:
-            raise CheckpointError(f"--resume: config differs from the run's in {', '.join(diff)}")
-        model.load_state_dict(ckpt["weights"])
-        optim.load_state_dict(ckpt["optimizer"])
-        critic.load_state_dict(ckpt["critic_weights"])
-        target_critic.load_state_dict(ckpt["critic_target_weights"])
-        critic_optim.load_state_dict(ckpt["critic_optimizer"])
-        progress = ckpt["progress"]
-        rng.bit_generator.state = ckpt["rng"]["train"]
-        env.rng.bit_generator.state = ckpt["rng"]["env"]
-        torch.set_rng_state(ckpt["rng"]["torch"])
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    run = Run(cfg, env, resume, ("critic_loss", "actor_loss"), log)
+    if run.checkpoint is not None:
+        model.load_state_dict(run.checkpoint["weights"])
+        optim.load_state_dict(run.checkpoint["optimizer"])
+        critic.load_state_dict(run.checkpoint["critic_weights"])
+        target_critic.load_state_dict(run.checkpoint["critic_target_weights"])
+        critic_optim.load_state_dict(run.checkpoint["critic_optimizer"])
     actor = SamplingActor(model, env.batch, n)
-    writer = _tensorboard(out)
-    csv_file = (out / "progress.csv").open("a", newline="")
-    csv_log = csv.writer(csv_file)
-    if progress["steps"] == 0:
-        csv_log.writerow(
-            [
-                "steps",
-                "episodes",
-                "updates",
-                "epsilon",
-                "return",
-                "critic_loss",
-                "actor_loss",
-                "steps_per_s",
-            ]
-        )
-    returns: list[float] = []
-    next_ckpt = progress["steps"] + cfg.checkpoint_every
-    started, steps_at_start = time.perf_counter(), progress["steps"]
-    seconds_before = progress["seconds"]
-
-    def checkpoint() -> None:
-        progress["seconds"] = seconds_before + time.perf_counter() - started
-        rng_state = {
-            "train": rng.bit_generator.state,
-            "env": env.rng.bit_generator.state,
-            "torch": torch.get_rng_state(),
-        }
-        extra = {
-            "critic_weights": critic.state_dict(),
-            "critic_target_weights": target_critic.state_dict(),
-            "critic_optimizer": critic_optim.state_dict(),
-        }
-        save_checkpoint(ckpt_path, model, None, optim, cfg, env, progress, rng_state, extra)
-
-    while progress["steps"] < cfg.steps:
-        frac = min(progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
-        epsilon = cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+    progress, rng = run.progress, run.rng
+    while run.running:
+        epsilon = run.epsilon()
         episodes = rollout(env, actor, epsilon, rng, with_state=True)
         # one more draw at the final observation: the action the last TD target bootstraps on
         final = actor.act(env.observe(), env.present, env.pos, env.joined, epsilon, rng)
-        per_agent = env.episode_return.sum(1) / np.maximum(env.present.sum(1), 1)
-        returns = (returns + per_agent.tolist())[-200:]
-        progress["steps"] += env.batch * env.config.max_steps
-        progress["episodes"] += env.batch
 
         # time-major tensors: obs (T1, E, N, D), state (T1, E, S), actions (T1, E, N)
         obs = torch.from_numpy(episodes["obs"]).permute(1, 0, 2, 3)
@@ -217,7 +144,7 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
         # critic: TD(lambda) on Q of the taken joint action, targets from the target critic
         with torch.no_grad():
             q_target = target_critic(state, obs, actions).gather(-1, actions[..., None])[..., 0]
-            y = td_lambda_targets(team_reward[..., None], q_target[1:], cfg.gamma, TD_LAMBDA)
+            y = td_lambda_targets(team_reward[..., None], q_target[1:], cfg.gamma, cfg.td_lambda)
         for _ in range(cfg.updates_per_rollout):
             q_taken = critic(state[:-1], obs[:-1], actions[:-1]).gather(-1, actions[:-1, ..., None])
             critic_loss = F.mse_loss(q_taken[..., 0], y)
@@ -234,52 +161,26 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
             model, torch.from_numpy(episodes["obs"]), torch.from_numpy(episodes["fresh"])
         )
         t1, e = obs.shape[:2]
-        pi = policy(q_values(model, feats, []).view(t1, e, n, n_actions)[:-1], epsilon)
+        logits = q_values(model, feats, []).view(t1, e, n, n_actions)[:-1]
+        pi = policy(logits, epsilon)
         with torch.no_grad():
             q_all = critic(state[:-1], obs[:-1], actions[:-1])
             advantage = counterfactual_advantage(q_all, pi, actions[:-1])
         log_pi = pi.gather(-1, actions[:-1, ..., None])[..., 0].log()
-        probs = torch.softmax(q_values(model, feats, []), -1)
-        entropy = -(probs * probs.clamp_min(1e-8).log()).sum(-1).mean()
-        actor_loss = -(advantage * log_pi).mean() - ENTROPY_COEF * entropy
+        entropy = -(logits.softmax(-1) * logits.log_softmax(-1)).sum(-1).mean()
+        actor_loss = -(advantage * log_pi).mean() - cfg.entropy_coef * entropy
         optim.zero_grad()
         actor_loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optim.step()
 
-        rate = (progress["steps"] - steps_at_start) / (time.perf_counter() - started)
-        row = {
-            "return": float(np.mean(returns)),
-            "epsilon": epsilon,
-            "steps_per_s": rate,
-            "critic_loss": critic_loss.item(),
-            "actor_loss": actor_loss.item(),
-        }
-        csv_log.writerow(
-            [
-                progress["steps"],
-                progress["episodes"],
-                progress["updates"],
-                f"{epsilon:.3f}",
-                f"{row['return']:.3f}",
-                f"{row['critic_loss']:.4f}",
-                f"{row['actor_loss']:.4f}",
-                f"{rate:.0f}",
-            ]
-        )
-        if writer is not None:
-            for key, value in row.items():
-                writer.add_scalar(f"train/{key}", value, progress["steps"])
-        log(
-            f"\r[{cfg.algo}] {progress['steps'] / cfg.steps:6.1%} steps {progress['steps']:,} "
-            f"return {row['return']:6.2f} eps {epsilon:.2f} {rate:,.0f} steps/s",
-            end="",
-        )
-        if progress["steps"] >= next_ckpt or progress["steps"] >= cfg.steps:
-            checkpoint()
-            next_ckpt = progress["steps"] + cfg.checkpoint_every
-    log("")
-    csv_file.close()
-    if writer is not None:
-        writer.close()
-    return ckpt_path
+        if run.record(
+            epsilon, {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
+        ):
+            extra = {
+                "critic_weights": critic.state_dict(),
+                "critic_target_weights": target_critic.state_dict(),
+                "critic_optimizer": critic_optim.state_dict(),
+            }
+            run.save(model, None, optim, extra)
+    return run.close()

@@ -147,16 +147,14 @@ class Actor:
         self.t = 0
 
     @torch.no_grad()
-    def act(
-        self,
-        obs: np.ndarray,
-        present: np.ndarray,
-        pos: np.ndarray,
-        fresh: np.ndarray,
-        epsilon: float = 0.0,
-        rng: np.random.Generator | None = None,
-    ) -> np.ndarray:
-        """Greedy (or epsilon-greedy) actions (B, N); ``fresh`` marks slots whose agent is new."""
+    def values(
+        self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray, fresh: np.ndarray
+    ) -> torch.Tensor:
+        """One decision step's outputs (B*N, actions): Q values, or COMA's policy logits.
+
+        Advances each agent's memory (``fresh`` marks slots whose agent is new) and, for UDAN,
+        re-forms groups every ``group_interval`` steps or when a member has left.
+        """
         spec = self.model.spec
         feats, self.state = self.model.encoder(
             torch.from_numpy(obs).reshape(1, -1, spec.obs_dim),
@@ -176,12 +174,25 @@ class Actor:
                     for b in range(self.batch)
                 ]
             rounds = merge_rounds(self.groups, [b * self.slots for b in range(self.batch)])
-        q = self.model.head(feats, self.model.messages(feats, rounds))
+        self.t += 1
+        return self.model.head(feats, self.model.messages(feats, rounds))
+
+    def act(
+        self,
+        obs: np.ndarray,
+        present: np.ndarray,
+        pos: np.ndarray,
+        fresh: np.ndarray,
+        epsilon: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        """Greedy (or epsilon-greedy) actions (B, N)."""
+        q = self.values(obs, present, pos, fresh)
         actions = q.argmax(-1).numpy().reshape(self.batch, self.slots)
         if epsilon > 0:
             explore = rng.random(actions.shape) < epsilon
-            actions = np.where(explore, rng.integers(0, spec.n_actions, actions.shape), actions)
-        self.t += 1
+            n_actions = self.model.spec.n_actions
+            actions = np.where(explore, rng.integers(0, n_actions, actions.shape), actions)
         return actions
 
     def padded_groups(self) -> np.ndarray:

@@ -97,6 +97,10 @@ class TrainConfig:
     """Leader probability above which an agent leads a group."""
     leader_coef: float = 1.0
     """Weight of the leader classifier's BCE loss."""
+    td_lambda: float = 0.8
+    """COMA: lambda of the critic's TD(lambda) targets (the COMA paper's and pymarl's 0.8)."""
+    entropy_coef: float = 0.01
+    """COMA: weight of the policy entropy bonus (as EPyMARL; without it the actor collapsed)."""
     checkpoint_every: float = 1e5
     """Environment steps between checkpoints (and at the end)."""
     torch_threads: int = 1
@@ -323,6 +327,134 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
     return env, MultiAgentQ(spec)
 
 
+class Run:
+    """A run folder's bookkeeping, shared by every learner's loop.
+
+    Checks the config on resume and restores progress and every random state (the caller
+    restores its networks from :attr:`checkpoint`), keeps the exploration schedule, writes
+    ``config.json``, ``progress.csv``, TensorBoard scalars and the one-line progress print, and
+    says when a checkpoint is due.
+    """
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        env: ArenaBatch,
+        resume: bool,
+        loss_names: tuple[str, ...],
+        log=print,
+    ) -> None:
+        self.cfg, self.env, self.log, self.loss_names = cfg, env, log, loss_names
+        self.out = Path(cfg.out)
+        self.path = self.out / "checkpoint.pt"
+        self.rng = np.random.default_rng(cfg.seed)
+        self.progress = {"steps": 0, "episodes": 0, "updates": 0, "seconds": 0.0}
+        self.checkpoint: dict | None = None
+        if resume:
+            ckpt = load_checkpoint(self.path)
+            diff = sorted(
+                k
+                for k, v in asdict(cfg).items()
+                if k not in RESUMABLE_FIELDS and ckpt["config"].get(k) != v
+            )
+            if diff:
+                raise CheckpointError(
+                    f"--resume: config differs from the run's in {', '.join(diff)}"
+                )
+            self.progress = ckpt["progress"]
+            self.rng.bit_generator.state = ckpt["rng"]["train"]
+            env.rng.bit_generator.state = ckpt["rng"]["env"]
+            torch.set_rng_state(ckpt["rng"]["torch"])
+            self.checkpoint = ckpt
+        else:
+            self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+        self.writer = _tensorboard(self.out)
+        self.csv_file = (self.out / "progress.csv").open("a", newline="")
+        self.csv = csv.writer(self.csv_file)
+        if self.progress["steps"] == 0:
+            self.csv.writerow(
+                ["steps", "episodes", "updates", "epsilon", "return", *loss_names, "steps_per_s"]
+            )
+        self.returns: list[float] = []
+        self.next_checkpoint = self.progress["steps"] + cfg.checkpoint_every
+        self.started, self.steps_at_start = time.perf_counter(), self.progress["steps"]
+        self.seconds_before = self.progress["seconds"]
+
+    @property
+    def running(self) -> bool:
+        return self.progress["steps"] < self.cfg.steps
+
+    def epsilon(self) -> float:
+        """Linear decay from eps_start to eps_end over eps_fraction of the run."""
+        cfg = self.cfg
+        frac = min(self.progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
+        return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+
+    def record(self, epsilon: float, losses: dict[str, float]) -> bool:
+        """Account for the rollout just played and log it; True when a checkpoint is due."""
+        env, progress = self.env, self.progress
+        per_agent = env.episode_return.sum(1) / np.maximum(env.present.sum(1), 1)
+        self.returns = (self.returns + per_agent.tolist())[-200:]
+        progress["steps"] += env.batch * env.config.max_steps
+        progress["episodes"] += env.batch
+        rate = (progress["steps"] - self.steps_at_start) / (time.perf_counter() - self.started)
+        mean_return = float(np.mean(self.returns))
+        self.csv.writerow(
+            [
+                progress["steps"],
+                progress["episodes"],
+                progress["updates"],
+                f"{epsilon:.3f}",
+                f"{mean_return:.3f}",
+                *(f"{losses.get(k, float('nan')):.4f}" for k in self.loss_names),
+                f"{rate:.0f}",
+            ]
+        )
+        if self.writer is not None:
+            for key, value in {
+                "return": mean_return,
+                "epsilon": epsilon,
+                "steps_per_s": rate,
+                **losses,
+            }.items():
+                self.writer.add_scalar(f"train/{key}", value, progress["steps"])
+        self.log(
+            f"\r[{self.cfg.algo}] {progress['steps'] / self.cfg.steps:6.1%} steps "
+            f"{progress['steps']:,} return {mean_return:6.2f} eps {epsilon:.2f} "
+            f"{rate:,.0f} steps/s",
+            end="",
+        )
+        due = progress["steps"] >= self.next_checkpoint or not self.running
+        if due:
+            self.next_checkpoint = progress["steps"] + self.cfg.checkpoint_every
+        return due
+
+    def save(
+        self,
+        model: MultiAgentQ,
+        target: MultiAgentQ | None,
+        optim: torch.optim.Optimizer,
+        extra: dict | None = None,
+    ) -> None:
+        self.progress["seconds"] = self.seconds_before + time.perf_counter() - self.started
+        rng_state = {
+            "train": self.rng.bit_generator.state,
+            "env": self.env.rng.bit_generator.state,
+            "torch": torch.get_rng_state(),
+        }
+        save_checkpoint(
+            self.path, model, target, optim, self.cfg, self.env, self.progress, rng_state, extra
+        )
+
+    def close(self) -> Path:
+        self.log("")
+        self.csv_file.close()
+        if self.writer is not None:
+            self.writer.close()
+        return self.path
+
+
 def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     """Train until ``cfg.steps``; returns the checkpoint path."""
     if cfg.algo == "coma":  # on-policy actor-critic: its own loop, same config and checkpoint
@@ -330,12 +462,9 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
 
         return train_coma(cfg, resume=resume, log=log)
     torch.set_num_threads(cfg.torch_threads)
-    out = Path(cfg.out)
-    ckpt_path, replay_path = out / "checkpoint.pt", out / "replay.npz"
     env, model = build(cfg)
     target = copy.deepcopy(model)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    rng = np.random.default_rng(cfg.seed)
     replay = EpisodeReplay(
         cfg.buffer_episodes,
         env.config.max_steps,
@@ -344,104 +473,29 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
         cfg.group_size,
         model.spec.state_dim,
     )
-    progress = {"steps": 0, "episodes": 0, "updates": 0, "seconds": 0.0}
-    if resume:
-        ckpt = load_checkpoint(ckpt_path)
-        saved = ckpt["config"]
-        diff = sorted(
-            k for k, v in asdict(cfg).items() if k not in RESUMABLE_FIELDS and saved.get(k) != v
-        )
-        if diff:
-            raise CheckpointError(f"--resume: config differs from the run's in {', '.join(diff)}")
-        model.load_state_dict(ckpt["weights"])
-        target.load_state_dict(ckpt["target_weights"])
-        optim.load_state_dict(ckpt["optimizer"])
-        progress = ckpt["progress"]
-        rng.bit_generator.state = ckpt["rng"]["train"]
-        env.rng.bit_generator.state = ckpt["rng"]["env"]
-        torch.set_rng_state(ckpt["rng"]["torch"])
+    run = Run(cfg, env, resume, ("td_loss", "leader_loss"), log)
+    replay_path = run.out / "replay.npz"
+    if run.checkpoint is not None:
+        model.load_state_dict(run.checkpoint["weights"])
+        target.load_state_dict(run.checkpoint["target_weights"])
+        optim.load_state_dict(run.checkpoint["optimizer"])
         replay.load(replay_path)
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
     actor = Actor(model, env.batch, env.slots)
-    writer = _tensorboard(out)
-    csv_file = (out / "progress.csv").open("a", newline="")
-    csv_log = csv.writer(csv_file)
-    if progress["steps"] == 0:
-        csv_log.writerow(
-            [
-                "steps",
-                "episodes",
-                "updates",
-                "epsilon",
-                "return",
-                "td_loss",
-                "leader_loss",
-                "steps_per_s",
-            ]
-        )
-    returns: list[float] = []
-    next_ckpt = progress["steps"] + cfg.checkpoint_every
-    started, steps_at_start = time.perf_counter(), progress["steps"]
-    seconds_before = progress["seconds"]
-
-    def checkpoint() -> None:
-        progress["seconds"] = seconds_before + time.perf_counter() - started
-        rng_state = {
-            "train": rng.bit_generator.state,
-            "env": env.rng.bit_generator.state,
-            "torch": torch.get_rng_state(),
-        }
-        save_checkpoint(ckpt_path, model, target, optim, cfg, env, progress, rng_state)
-        replay.save(replay_path)
-
-    while progress["steps"] < cfg.steps:
-        frac = min(progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
-        epsilon = cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
-        episodes = rollout(env, actor, epsilon, rng, with_state=model.spec.state_dim > 0)
-        replay.add(episodes)
-        per_agent = env.episode_return.sum(1) / np.maximum(env.present.sum(1), 1)
-        returns = (returns + per_agent.tolist())[-200:]
-        progress["steps"] += env.batch * env.config.max_steps
-        progress["episodes"] += env.batch
+    while run.running:
+        epsilon = run.epsilon()
+        replay.add(rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0))
         losses: dict[str, float] = {}
         if replay.size >= cfg.batch_episodes:
             for _ in range(cfg.updates_per_rollout):
-                losses = update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
-                progress["updates"] += 1
-                if progress["updates"] % cfg.target_interval == 0:
+                batch = replay.sample(cfg.batch_episodes, run.rng)
+                losses = update(model, target, optim, batch, cfg)
+                run.progress["updates"] += 1
+                if run.progress["updates"] % cfg.target_interval == 0:
                     target.load_state_dict(model.state_dict())
-        rate = (progress["steps"] - steps_at_start) / (time.perf_counter() - started)
-        row = {"return": float(np.mean(returns)), "epsilon": epsilon, "steps_per_s": rate, **losses}
-        csv_log.writerow(
-            [
-                progress["steps"],
-                progress["episodes"],
-                progress["updates"],
-                f"{epsilon:.3f}",
-                f"{row['return']:.3f}",
-                f"{losses.get('td_loss', float('nan')):.4f}",
-                f"{losses.get('leader_loss', float('nan')):.4f}",
-                f"{rate:.0f}",
-            ]
-        )
-        if writer is not None:
-            for key, value in row.items():
-                writer.add_scalar(f"train/{key}", value, progress["steps"])
-        log(
-            f"\r[{cfg.algo}] {progress['steps'] / cfg.steps:6.1%} steps {progress['steps']:,} "
-            f"return {row['return']:6.2f} eps {epsilon:.2f} {rate:,.0f} steps/s",
-            end="",
-        )
-        if progress["steps"] >= next_ckpt or progress["steps"] >= cfg.steps:
-            checkpoint()
-            next_ckpt = progress["steps"] + cfg.checkpoint_every
-    log("")
-    csv_file.close()
-    if writer is not None:
-        writer.close()
-    return ckpt_path
+        if run.record(epsilon, losses):
+            run.save(model, target, optim)
+            replay.save(replay_path)
+    return run.close()
 
 
 def _tensorboard(out: Path):
