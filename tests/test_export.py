@@ -20,10 +20,11 @@ from onnx import TensorProto, helper
 from export.cli import main, sha256
 from export.graph import build_graph
 from export.metadata import KEYS, MetadataError, build_metadata, check_metadata, obs_spec
-from export.runtime import OnnxPolicy, PolicyGraph, neighbour_table, round_inputs
+from export.runtime import OnnxPolicy, PolicyGraph, round_inputs
 from export.verify import frozen_axes, verify
 from udan.checkpoint import load_model
 from udan.envs import make_vec
+from udan.envs.grouping import neighbour_table
 from udan.envs.observe import ObsSpec
 from udan.learner import ALGOS, Actor
 from udan.train import TrainConfig, train
@@ -224,6 +225,14 @@ def test_verify_against_another_checkpoint_fails_loudly(checkpoints, udan_policy
     assert main(["verify", str(udan_policy), str(other), "--sizes", "3"]) == 1
     out = capsys.readouterr().out
     assert "verdict: FAIL" in out and "sha256: DIFFERS" in out
+
+
+def test_verify_catches_weights_that_drifted_by_a_hundredth(checkpoints, udan_policy, tmp_path):
+    ckpt = torch.load(checkpoints["udan"], weights_only=True)
+    ckpt["weights"]["head.net.2.bias"] += 0.01
+    torch.save(ckpt, tmp_path / "drifted.pt")
+    code = main(["verify", str(udan_policy), str(tmp_path / "drifted.pt"), "--sizes", "3,5"])
+    assert code == 1
 
 
 def test_bench_prints_json_with_torch_alongside(checkpoints, udan_policy, capsys):

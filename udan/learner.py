@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, nearest
+from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, neighbour_table
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
 ALGOS = ("udan", "qmix", "vdn", "iql", "coma")
@@ -103,17 +103,11 @@ class MultiAgentQ(nn.Module):
         raise ValueError(f"{self.spec.algo} has no mixer")
 
 
-def neighbour_rows(pos: np.ndarray, present: np.ndarray, count: int) -> torch.Tensor:
-    """Attention neighbourhoods of M arenas as rows into their flattened (M*N) agents.
-
-    ``pos`` (M, N, 2), ``present`` (M, N) -> (M*N, count) long, -1 where there is no neighbour.
-    """
-    m, n = present.shape
-    out = np.full((m, n, count), -1, dtype=np.int64)
-    for i in range(m):
-        near = nearest(pos[i], present[i], count)
-        out[i, :, : near.shape[1]] = np.where(near >= 0, near + i * n, -1)
-    return torch.from_numpy(out.reshape(m * n, count))
+def neighbour_rows(tables: list[np.ndarray]) -> torch.Tensor:
+    """Per-arena :func:`neighbour_table` s as rows into the arenas' flattened agents (-1 kept)."""
+    n = tables[0].shape[0]
+    rows = [np.where(t >= 0, t + i * n, -1) for i, t in enumerate(tables)]
+    return torch.from_numpy(np.concatenate(rows))
 
 
 def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list[torch.Tensor]:
@@ -166,11 +160,21 @@ class Actor:
         if spec.communicates:
             stale = any(len(g) and not present[b][g].all() for b, g in enumerate(self.groups))
             if self.t % spec.group_interval == 0 or stale:
-                neighbours = neighbour_rows(pos, present, spec.attention_neighbours)
-                logits = self.model.leader(feats, neighbours)
+                tables = [
+                    neighbour_table(pos[b], present[b], spec.attention_neighbours)
+                    for b in range(self.batch)
+                ]
+                logits = self.model.leader(feats, neighbour_rows(tables))
                 prob = torch.sigmoid(logits).view(self.batch, self.slots).numpy()
                 self.groups = [
-                    form_groups(pos[b], present[b], prob[b], spec.group_size, spec.leader_threshold)
+                    form_groups(
+                        pos[b],
+                        present[b],
+                        prob[b],
+                        spec.group_size,
+                        spec.leader_threshold,
+                        near=tables[b],
+                    )
                     for b in range(self.batch)
                 ]
             rounds = merge_rounds(self.groups, [b * self.slots for b in range(self.batch)])

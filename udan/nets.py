@@ -47,15 +47,15 @@ class AgentEncoder(nn.Module):
         if fresh is None:
             return self.lstm(x, state)
         if not fresh[1:].any():
-            return self.lstm(x, self._forget(state, fresh[0]))
+            return self.lstm(x, self.forget(state, fresh[0]))
         outs = []
         for t in range(x.shape[0]):
-            out, state = self.lstm(x[t : t + 1], self._forget(state, fresh[t]))
+            out, state = self.lstm(x[t : t + 1], self.forget(state, fresh[t]))
             outs.append(out)
         return torch.cat(outs), state
 
     @staticmethod
-    def _forget(state, fresh: torch.Tensor):
+    def forget(state, fresh: torch.Tensor):
         keep = (~fresh).to(state[0].dtype)[None, :, None]
         return state[0] * keep, state[1] * keep
 
@@ -101,6 +101,11 @@ class GroupComm(nn.Module):
         out, _ = self.lstm(members)
         return self.proj(out)
 
+    def round(self, enc: torch.Tensor, members: torch.Tensor) -> torch.Tensor:
+        """One round of disjoint groups (G, s): their members' encodings updated (eqs. 2-3)."""
+        updated = self.encode_groups(enc[members])
+        return enc.index_put((members.reshape(-1),), updated.reshape(-1, enc.shape[-1]))
+
     def forward(self, feats: torch.Tensor, rounds: list[torch.Tensor]) -> torch.Tensor:
         """``feats`` (M, H) of all agents; ``rounds``: per round a (G, s) tensor of member rows.
 
@@ -112,8 +117,7 @@ class GroupComm(nn.Module):
         for members in rounds:
             if members.numel() == 0:
                 continue
-            updated = self.encode_groups(enc[members])
-            enc = enc.index_put((members.reshape(-1),), updated.reshape(-1, enc.shape[-1]))
+            enc = self.round(enc, members)
             grouped[members.reshape(-1)] = True
         return torch.where(grouped[:, None], enc, torch.zeros_like(enc))
 

@@ -30,6 +30,7 @@ from torch.nn import functional as F
 from udan.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.arena import ArenaBatch
+from udan.envs.grouping import neighbour_table
 from udan.learner import (
     ALGOS,
     Actor,
@@ -286,7 +287,10 @@ def update(
         alive_f = batch["present"][:, formed.numpy()].transpose(1, 0, 2).reshape(-1, n)
         rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f)
         if len(rows):
-            neighbours = neighbour_rows(pos, alive_f, model.spec.attention_neighbours)
+            count = model.spec.attention_neighbours
+            neighbours = neighbour_rows(
+                [neighbour_table(p, a, count) for p, a in zip(pos, alive_f, strict=True)]
+            )
             logits = model.leader(f, neighbours)[rows]
             leader_loss = F.binary_cross_entropy_with_logits(logits, leader_targets(delta))
             loss = loss + cfg.leader_coef * leader_loss

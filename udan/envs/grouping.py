@@ -39,13 +39,28 @@ def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     return out
 
 
+def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
+    """:func:`nearest` padded to exactly ``count`` columns with -1 (a fixed-width input)."""
+    near = nearest(pos, present, count)
+    out = np.full((len(present), count), -1, dtype=np.int64)
+    out[:, : near.shape[1]] = near
+    return out
+
+
 def form_groups(
-    pos: np.ndarray, present: np.ndarray, leader_prob: np.ndarray, k: int, threshold: float
+    pos: np.ndarray,
+    present: np.ndarray,
+    leader_prob: np.ndarray,
+    k: int,
+    threshold: float,
+    near: np.ndarray | None = None,
 ) -> np.ndarray:
     """Groups of one arena as a (G, min(k, n)) array of slots, leader first then by distance.
 
     ``pos`` (N, 2), ``present`` (N,), ``leader_prob`` (N,). Leaders are ordered by
-    probability (highest first), which is also the order bridges are updated in.
+    probability (highest first), which is also the order bridges are updated in. ``near``, a
+    :func:`neighbour_table` of at least ``k`` columns already computed for the leader
+    attention, saves a second pass over all pairs.
     """
     slots = np.flatnonzero(present)
     size = min(k, slots.size)
@@ -53,7 +68,9 @@ def form_groups(
     if size < 2 or leaders.size == 0:
         return np.zeros((0, size), dtype=np.int64)
     leaders = leaders[np.argsort(-leader_prob[leaders], kind="stable")]
-    return nearest(pos, present, k)[leaders]
+    if near is None or near.shape[1] < size:
+        near = nearest(pos, present, k)
+    return near[leaders, :size]
 
 
 def hypothetical_groups(pos: np.ndarray, present: np.ndarray, k: int) -> np.ndarray:
