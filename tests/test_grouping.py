@@ -1,6 +1,7 @@
 """Leaders, groups and bridge rounds (numpy; shared by training and the edge)."""
 
 import numpy as np
+import pytest
 
 from udan.envs.grouping import (
     communication_matrix,
@@ -61,11 +62,20 @@ def test_hypothetical_groups_and_the_communication_matrix():
     assert c.tolist() == [[True, True, False], [True, True, False], [False, False, False]]
 
 
-def test_nearest_is_itself_first_then_by_distance_then_slot_and_matches_a_full_sort():
+@pytest.mark.parametrize("distinct_cells", [True, False])
+def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells):
+    """Distinct cells take the ring search, shared cells the all-pairs path: both must equal a
+    plain sort by (distance, slot)."""
     rng = np.random.default_rng(0)
-    for _ in range(50):
+    for _ in range(150):
+        h, w = (int(v) for v in rng.integers(1, 9, size=2))
         n = int(rng.integers(1, 30))
-        pos = rng.integers(0, 6, size=(n, 2))
+        if distinct_cells:
+            n = min(n, h * w)
+            cells = rng.choice(h * w, size=n, replace=False)
+        else:
+            cells = rng.integers(0, h * w, size=n)
+        pos = np.stack([cells // w, cells % w], -1)
         present = rng.random(n) < 0.8
         count = int(rng.integers(1, 10))
         got = nearest(pos, present, count)

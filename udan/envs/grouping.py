@@ -17,26 +17,61 @@ def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     """Each agent's ``count`` nearest present agents, itself first: (N, min(count, n)) slots.
 
     Grid (Manhattan) distance, ties broken by slot, so training and the edge agree exactly.
-    Rows of absent agents are -1. Linear-time selection (argpartition) per row.
+    Rows of absent agents are -1. Agents on distinct cells (the world rules guarantee it) are
+    found ring by ring on an occupancy grid, O(N x cells searched); otherwise all pairs.
     """
-    n_slots = len(present)
     slots = np.flatnonzero(present)
     size = min(count, slots.size)
-    out = np.full((n_slots, size), -1, dtype=np.int64)
+    out = np.full((len(present), size), -1, dtype=np.int64)
     if size == 0:
         return out
-    dist = np.abs(pos[slots, None, :] - pos[None, slots, :]).sum(-1)
-    key = dist * n_slots + slots[None, :]  # distance first, then slot: unique keys
-    np.fill_diagonal(key, -1)  # itself first
-    part = (
-        np.argpartition(key, size - 1, axis=1)[:, :size]
-        if size < slots.size
-        else (np.broadcast_to(np.arange(slots.size), key.shape))
-    )
-    picked = np.take_along_axis(key, part, axis=1)
-    order = np.take_along_axis(part, np.argsort(picked, axis=1), axis=1)
-    out[slots] = slots[order]
+    cells = pos[slots]
+    shape = cells.max(0) + 1
+    flat = cells[:, 0] * shape[1] + cells[:, 1]
+    if np.unique(flat).size < flat.size:
+        out[slots] = _nearest_all_pairs(cells, slots, size)
+    else:
+        out[slots] = _nearest_by_rings(cells, slots, size, shape)
     return out
+
+
+def _nearest_all_pairs(cells: np.ndarray, slots: np.ndarray, size: int) -> np.ndarray:
+    dist = np.abs(cells[:, None, :] - cells[None, :, :]).sum(-1)
+    key = dist * (slots.max() + 1) + slots[None, :]  # distance first, then slot: unique keys
+    np.fill_diagonal(key, -1)  # itself first
+    return slots[np.argsort(key, axis=1, kind="stable")[:, :size]]
+
+
+def _nearest_by_rings(
+    cells: np.ndarray, slots: np.ndarray, size: int, shape: np.ndarray
+) -> np.ndarray:
+    """Rings of growing Manhattan radius around every agent at once; a ring's agents in slot
+    order, so the result equals sorting by (distance, slot)."""
+    grid = np.full(tuple(shape), -1, dtype=np.int64)
+    grid[cells[:, 0], cells[:, 1]] = slots
+    found = np.full((len(slots), size), -1, dtype=np.int64)
+    found[:, 0] = slots
+    filled = np.ones(len(slots), dtype=np.int64)
+    big = np.iinfo(np.int64).max  # sorts empty cells after every slot
+    for radius in range(1, int(shape.sum())):
+        need = np.flatnonzero(filled < size)
+        if need.size == 0:
+            break
+        d_row = np.arange(-radius, radius + 1)
+        d_col = radius - np.abs(d_row)
+        ring = np.unique(
+            np.concatenate([np.stack([d_row, d_col], 1), np.stack([d_row, -d_col], 1)]), axis=0
+        )
+        r = cells[need, None, 0] + ring[None, :, 0]
+        c = cells[need, None, 1] + ring[None, :, 1]
+        inside = (r >= 0) & (r < shape[0]) & (c >= 0) & (c < shape[1])
+        hits = np.where(inside, grid[r.clip(0, shape[0] - 1), c.clip(0, shape[1] - 1)], -1)
+        hits = np.sort(np.where(hits >= 0, hits, big), axis=1)
+        take = np.minimum((hits != big).sum(1), size - filled[need])  # from this ring
+        rows, col = np.nonzero(np.arange(hits.shape[1])[None, :] < take[:, None])
+        found[need[rows], filled[need[rows]] + col] = hits[rows, col]
+        filled[need] += take
+    return found
 
 
 def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
