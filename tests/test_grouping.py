@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from udan.envs import grouping
 from udan.envs.grouping import (
     communication_matrix,
     form_groups,
@@ -63,9 +64,10 @@ def test_hypothetical_groups_and_the_communication_matrix():
 
 
 @pytest.mark.parametrize("distinct_cells", [True, False])
-def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells):
+def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells, monkeypatch):
     """Distinct cells take the ring search, shared cells the all-pairs path: both must equal a
     plain sort by (distance, slot)."""
+    monkeypatch.setattr(grouping, "RING_SEARCH_FROM", 0)  # small fleets take the ring path too
     rng = np.random.default_rng(0)
     for _ in range(150):
         h, w = (int(v) for v in rng.integers(1, 9, size=2))

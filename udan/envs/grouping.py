@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Fleets up to this size compare all pairs (cheaper than growing rings on a small arena).
+RING_SEARCH_FROM = 64
+
 
 def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     """Each agent's ``count`` nearest present agents, itself first: (N, min(count, n)) slots.
 
     Grid (Manhattan) distance, ties broken by slot, so training and the edge agree exactly.
-    Rows of absent agents are -1. Agents on distinct cells (the world rules guarantee it) are
-    found ring by ring on an occupancy grid, O(N x cells searched); otherwise all pairs.
+    Rows of absent agents are -1. Large fleets on distinct cells (the world rules guarantee it)
+    are searched ring by ring on an occupancy grid, O(N x cells searched); otherwise all pairs.
     """
     slots = np.flatnonzero(present)
     size = min(count, slots.size)
@@ -28,7 +31,7 @@ def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     cells = pos[slots]
     shape = cells.max(0) + 1
     flat = cells[:, 0] * shape[1] + cells[:, 1]
-    if np.unique(flat).size < flat.size:
+    if slots.size <= RING_SEARCH_FROM or np.unique(flat).size < flat.size:
         out[slots] = _nearest_all_pairs(cells, slots, size)
     else:
         out[slots] = _nearest_by_rings(cells, slots, size, shape)
