@@ -1,5 +1,6 @@
 """udan-train end to end at tiny sizes: learning, exact resume, checkpoints, bad input."""
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -53,9 +54,16 @@ def test_save_load_gives_identical_actions(tmp_path):
     assert r1 == r2
 
 
-def test_an_interrupted_run_resumes_exactly(tmp_path):
+@pytest.mark.parametrize(
+    "algo_options", [{"algo": "udan"}, {"algo": "coma", "agents": "3"}], ids=["udan", "coma"]
+)
+def test_an_interrupted_run_resumes_exactly(tmp_path, algo_options):
+    """Both training loops (replay-based and on-policy) continue bit-identically after Ctrl-C."""
+
     def config(out):
-        return TrainConfig(steps=1600, out=str(tmp_path / out), checkpoint_every=800, **TINY)
+        return TrainConfig(
+            steps=1600, out=str(tmp_path / out), checkpoint_every=800, **{**TINY, **algo_options}
+        )
 
     straight = train(config("a"), log=quiet)
 
@@ -66,9 +74,13 @@ def test_an_interrupted_run_resumes_exactly(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         train(config("b"), log=interrupt_after_first_checkpoint)
     assert load_checkpoint(tmp_path / "b" / "checkpoint.pt")["progress"]["steps"] == 800
+    with pytest.raises(CheckpointError, match="config differs"):
+        train(dataclasses.replace(config("b"), lr=0.1), resume=True, log=quiet)
     resumed = train(config("b"), resume=True, log=quiet)
     a, b = load_checkpoint(straight), load_checkpoint(resumed)
-    assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
+    for key in ("weights", "target_weights", "critic_weights", "critic_target_weights"):
+        if a.get(key) is not None:
+            assert all(torch.equal(a[key][k], b[key][k]) for k in a[key]), key
     assert a["progress"]["updates"] == b["progress"]["updates"]
 
 
