@@ -17,8 +17,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/udan-eval --policy oracle --env arena/find_water --agents 1-5 --obstacles 0-9 --episodes 20
-	$(VENV)/bin/udan-eval --policy random --env arena/find_water --agents 1-5 --obstacles 0-9 --episodes 20
+	$(VENV)/bin/udan-eval models/find_water/checkpoint.pt --policy oracle --agents 1-5 --obstacles 0-9 --episodes 20
 
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
