@@ -415,6 +415,7 @@ class Run:
                 f"{rate:.0f}",
             ]
         )
+        self.csv_file.flush()  # a run is watched while it trains
         if self.writer is not None:
             for key, value in {
                 "return": mean_return,
