@@ -89,3 +89,23 @@ def test_bad_input_is_one_line_and_exit_code_2(args, message):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
+    from udan.train import TrainConfig, train
+
+    path = train(
+        TrainConfig(
+            env="arena/surround",
+            steps=200,
+            n_envs=4,
+            batch_episodes=4,
+            hidden=16,
+            out=str(tmp_path / "r"),
+        ),
+        log=lambda *a, **k: None,
+    )
+    args = [str(path), "--policy", "random", "--agents", "2", "--obstacles", "0", "--episodes", "2"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "arena/surround, random" in out and "arena/surround, udan" in out

@@ -134,9 +134,8 @@ def load_sources(args: argparse.Namespace) -> list[tuple[str, str, Policy]]:
             (f"{ckpt['algo']} ({Path(path).parent.name})", env_name, CheckpointPolicy(model))
         )
     if args.policy:
-        sources.append(
-            (args.policy, args.env or "arena/find_water", POLICIES[args.policy](seed=args.seed))
-        )
+        env_name = args.env or (sources[0][1] if sources else "arena/find_water")
+        sources.append((args.policy, env_name, POLICIES[args.policy](seed=args.seed)))
     if not sources:
         raise EnvConfigError("nothing to evaluate: give checkpoints and/or --policy")
     if len({env for _, env, _ in sources}) > 1:
