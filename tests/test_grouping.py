@@ -10,6 +10,7 @@ from udan.envs.grouping import (
     group_rounds,
     hypothetical_groups,
     nearest,
+    neighbour_table,
 )
 
 
@@ -87,3 +88,22 @@ def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells, monk
             others = sorted((abs(pos[i] - pos[j]).sum(), j) for j in slots if j != i)
             want = [i, *[j for _, j in others][: min(count, len(slots)) - 1]]
             assert got[i].tolist() == want
+
+
+def test_groups_from_a_precomputed_neighbour_table_equal_a_fresh_search():
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        n = int(rng.integers(1, 20))
+        cells = rng.choice(81, size=n, replace=False)
+        pos = np.stack([cells // 9, cells % 9], -1)
+        present = rng.random(n) < 0.8
+        k, width = int(rng.integers(1, 5)), int(rng.integers(1, 10))
+        table = neighbour_table(pos, present, width)
+        assert (
+            hypothetical_groups(pos, present, k, table) == hypothetical_groups(pos, present, k)
+        ).all()
+        prob = rng.random(n)
+        assert (
+            form_groups(pos, present, prob, k, 0.5, near=table)
+            == form_groups(pos, present, prob, k, 0.5)
+        ).all()

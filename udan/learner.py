@@ -225,17 +225,23 @@ def leader_targets(delta_q: torch.Tensor) -> torch.Tensor:
 
 
 def hypothetical_delta_q(
-    model: MultiAgentQ, feats: torch.Tensor, pos: np.ndarray, present: np.ndarray
+    model: MultiAgentQ,
+    feats: torch.Tensor,
+    pos: np.ndarray,
+    present: np.ndarray,
+    tables: list[np.ndarray] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """ΔQ of eq. (4) for every present agent as a leader of its k-1 nearest (features detached).
 
-    ``feats`` (M, N, H) for M arena-steps; returns (leader rows into the flat M*N agents, ΔQ).
+    ``feats`` (M, N, H) for M arena-steps; ``tables``, their neighbour tables if already made.
+    Returns (leader rows into the flat M*N agents, ΔQ).
     """
     m, n, _ = feats.shape
     flat = feats.reshape(m * n, -1).detach()
     leaders, members = [], []
     for i in range(m):
-        groups = hypothetical_groups(pos[i], present[i], model.spec.group_size)
+        near = None if tables is None else tables[i]
+        groups = hypothetical_groups(pos[i], present[i], model.spec.group_size, near)
         if groups.shape[1] >= 2:
             leaders.append(groups[:, 0] + i * n)
             members.append(groups + i * n)

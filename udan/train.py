@@ -285,13 +285,11 @@ def update(
         f = feats.view(t1, e, n, -1)[formed].reshape(len(formed) * e * n, -1).detach()
         pos = batch["pos"][:, formed.numpy()].transpose(1, 0, 2, 3).reshape(-1, n, 2)
         alive_f = batch["present"][:, formed.numpy()].transpose(1, 0, 2).reshape(-1, n)
-        rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f)
+        count = model.spec.attention_neighbours  # one neighbour search serves both uses
+        tables = [neighbour_table(p, a, count) for p, a in zip(pos, alive_f, strict=True)]
+        rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f, tables)
         if len(rows):
-            count = model.spec.attention_neighbours
-            neighbours = neighbour_rows(
-                [neighbour_table(p, a, count) for p, a in zip(pos, alive_f, strict=True)]
-            )
-            logits = model.leader(f, neighbours)[rows]
+            logits = model.leader(f, neighbour_rows(tables))[rows]
             leader_loss = F.binary_cross_entropy_with_logits(logits, leader_targets(delta))
             loss = loss + cfg.leader_coef * leader_loss
             losses["leader_loss"] = leader_loss.item()

@@ -111,12 +111,20 @@ def form_groups(
     return near[leaders, :size]
 
 
-def hypothetical_groups(pos: np.ndarray, present: np.ndarray, k: int) -> np.ndarray:
-    """Every present agent as a leader with its k-1 nearest (the leader classifier's targets)."""
+def hypothetical_groups(
+    pos: np.ndarray, present: np.ndarray, k: int, near: np.ndarray | None = None
+) -> np.ndarray:
+    """Every present agent as a leader with its k-1 nearest (the leader classifier's targets).
+
+    ``near``, as in :func:`form_groups`, reuses a neighbour table computed for the attention.
+    """
     slots = np.flatnonzero(present)
-    if min(k, slots.size) < 2:
-        return np.zeros((0, min(k, slots.size)), dtype=np.int64)
-    return nearest(pos, present, k)[slots]
+    size = min(k, slots.size)
+    if size < 2:
+        return np.zeros((0, size), dtype=np.int64)
+    if near is None or near.shape[1] < size:
+        near = nearest(pos, present, k)
+    return near[slots, :size]
 
 
 def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
