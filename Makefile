@@ -28,7 +28,7 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	@mkdir -p out/bench
 	@for b in bench/*.py; do name=$$(basename $$b .py); echo "== $$b"; \
-	  $(PY) $$b > out/bench/$$name.json || exit 1; cat out/bench/$$name.json; done
+	  $(PY) -P $$b > out/bench/$$name.json || exit 1; cat out/bench/$$name.json; done
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

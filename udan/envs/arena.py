@@ -144,6 +144,56 @@ def _pick(
     return candidates[order], np.arange(slots)[None, :] < counts[:, None]
 
 
+def layout_bits(layout: np.ndarray, view: int) -> np.ndarray:
+    """Observation bits (B, H+2v, W+2v) of static layouts (B, H, W) of rules cell codes."""
+    return pad_layout(_LAYOUT_BITS[layout], view)
+
+
+def scene_codes(
+    padded_layout: np.ndarray,
+    pos: np.ndarray,
+    present: np.ndarray,
+    view: int,
+    target: np.ndarray | None = None,
+) -> np.ndarray:
+    """What :func:`udan.envs.observe.observe` reads: the padded layout bits (B, H+2v, W+2v)
+    with every present agent's cell and the surround ``target`` (B, 2) cell marked. The arena
+    core and the edge (which builds the scene from camera markers) both call this."""
+    codes = padded_layout.copy()
+    batch, wp = codes.shape[0], codes.shape[2]
+    flat = codes.reshape(-1)
+    base = np.arange(batch)[:, None] * (codes.shape[1] * wp)
+    cells = base + (pos[..., 0] + view) * wp + pos[..., 1] + view
+    flat[cells[present]] |= AGENT_BIT
+    if target is not None:
+        flat[base[:, 0] + (target[:, 0] + view) * wp + target[:, 1] + view] |= OBJECTIVE_BIT
+    return codes
+
+
+def task_rewards(
+    task: str,
+    layout: np.ndarray,
+    pos: np.ndarray,
+    present: np.ndarray,
+    target: np.ndarray | None,
+    t: np.ndarray,
+) -> np.ndarray:
+    """Per-agent rewards (B, N) of one step that has just ended (``t`` counts it).
+
+    find_water: 1 on a cell in front of a source. surround: 1 next to the target, else -1 every
+    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world.
+    """
+    if task == "find_water":
+        front = pos[..., 0] == 1
+        source = layout[np.arange(len(layout))[:, None], 0, pos[..., 1]] == WATER
+        reward = (front & source).astype(np.float32)
+    else:
+        adjacent = np.abs(pos - target[:, None]).sum(-1) == 1
+        penalty = (np.asarray(t) % 4 == 0)[:, None] & ~adjacent
+        reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
+    return np.where(present, reward, 0.0).astype(np.float32)
+
+
 class ArenaBatch:
     """B independent arena episodes stepped together; all arrays have the batch on axis 0."""
 
@@ -210,7 +260,7 @@ class ArenaBatch:
             agent_valid = np.arange(self.slots)[None, :] < n_agents[:, None]
             self.target[idx] = np.stack([target_cell // w, target_cell % w], axis=-1)
         self.layout[idx] = layout.reshape(k, h, w)
-        self._padded_layout[idx] = pad_layout(_LAYOUT_BITS[self.layout[idx]], cfg.view)
+        self._padded_layout[idx] = layout_bits(self.layout[idx], cfg.view)
         self.pos[idx] = np.stack([agent_cells // w, agent_cells % w], axis=-1)
         self.present[idx] = agent_valid
         self.agent_id[idx] = np.where(agent_valid, np.arange(self.slots)[None, :], -1)
@@ -260,20 +310,13 @@ class ArenaBatch:
         return self.observe(), reward, self.t >= self.config.max_steps
 
     def _rewards(self) -> np.ndarray:
-        cfg = self.config
-        if cfg.task == "find_water":
-            front = self.pos[..., 0] == 1
-            source = self.layout[np.arange(self.batch)[:, None], 0, self.pos[..., 1]] == WATER
-            reward = (front & source).astype(np.float32)
-        else:
-            adjacent = (
-                np.abs(self.pos[..., 0] - self.target[:, 0:1])
-                + np.abs(self.pos[..., 1] - self.target[:, 1:2])
-            ) == 1
-            penalty = (self.t % 4 == 0)[:, None] & ~adjacent
-            reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
+        reward = task_rewards(
+            self.config.task, self.layout, self.pos, self.present, self.target, self.t
+        )
+        if self.config.task == "surround":
+            adjacent = np.abs(self.pos - self.target[:, None]).sum(-1) == 1
             self.target_score -= (adjacent & self.present).any(axis=1)
-        return np.where(self.present, reward, 0.0).astype(np.float32)
+        return reward
 
     def flee_scores(self) -> np.ndarray:
         """How good each target action is (B, 5): -inf where blocked, else the distance it keeps
@@ -346,16 +389,8 @@ class ArenaBatch:
     # ------------------------------------------------------------------ views
     def cell_codes(self) -> np.ndarray:
         """Padded observation bit codes (B, H+2v, W+2v): layout, agents and the target."""
-        codes = self._padded_layout.copy()
-        v, wp = self.config.view, codes.shape[2]
-        plane = codes.shape[1] * wp
-        flat = codes.reshape(-1)
-        base = np.arange(self.batch)[:, None] * plane
-        cells = base + (self.pos[..., 0] + v) * wp + self.pos[..., 1] + v
-        flat[cells[self.present]] |= AGENT_BIT
-        if self.config.task == "surround":
-            flat[base[:, 0] + (self.target[:, 0] + v) * wp + self.target[:, 1] + v] |= OBJECTIVE_BIT
-        return codes
+        target = self.target if self.config.task == "surround" else None
+        return scene_codes(self._padded_layout, self.pos, self.present, self.config.view, target)
 
     def observe(self) -> np.ndarray:
         """Every slot's observation (B, N, spec.size); absent slots are zero."""

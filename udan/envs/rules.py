@@ -33,11 +33,9 @@ def intended_cells(pos: np.ndarray, actions: np.ndarray, passable: np.ndarray) -
     """
     _, height, width = passable.shape
     dest = pos + ACTION_DELTAS[actions]
-    ok = in_bounds(dest, height, width)
-    rows = np.clip(dest[..., 0], 0, height - 1)
-    cols = np.clip(dest[..., 1], 0, width - 1)
-    batch = np.arange(pos.shape[0])[:, None]
-    ok &= passable[batch, rows, cols]
+    ok = ((dest >= 0) & (dest < (height, width))).all(axis=-1)
+    probe = np.where(ok[..., None], dest, pos)
+    ok &= passable[np.arange(pos.shape[0])[:, None], probe[..., 0], probe[..., 1]]
     return np.where(ok[..., None], dest, pos)
 
 
@@ -55,8 +53,7 @@ def resolve_moves(
 
     Absent agents (``present`` False) neither move nor block.
     """
-    n_batch = actions.shape[0]
-    _, height, width = passable.shape
+    n_batch, height, width = passable.shape
     cells = height * width
     dest = intended_cells(pos, actions, passable)
     offset = (np.arange(n_batch) * cells)[:, None]
@@ -67,21 +64,18 @@ def resolve_moves(
     occupant = np.full(n_batch * cells, -1, dtype=np.int64)
     occupant[cur] = np.arange(cur.size)
     moving = dst != cur
-    while True:
+    while moving.any():
         claims = np.bincount(dst, minlength=n_batch * cells)
-        blocked = moving & (claims[dst] > 1)
         other = occupant[dst]
-        has_other = moving & (other >= 0)
-        swap = np.zeros_like(moving)
-        swap[has_other] = dst[other[has_other]] == cur[has_other]
-        blocked |= swap
+        # a claimed cell held by several, or a swap with the cell's occupant
+        blocked = moving & ((claims[dst] > 1) | ((other >= 0) & (dst[other] == cur)))
         if not blocked.any():
             break
         dst = np.where(blocked, cur, dst)
         moving &= ~blocked
     out = pos.copy()
-    local = dst - np.repeat(offset[:, 0], present.sum(axis=1))
-    out[present] = np.stack([local // width, local % width], axis=-1)
+    local = dst - offset[:, 0].repeat(present.sum(axis=1))
+    out[present] = np.stack(divmod(local, width), axis=-1)
     return out
 
 

@@ -1,0 +1,98 @@
+"""Decision latency of the edge: state -> all commands ready (masking, grouping, inference, safety).
+
+The edge's own :class:`edge.decide.DecisionStep` with the bundled find_water policy, fed the cells
+an arena episode would show the camera, and the world stepped with the commands it returns (so
+the groups, joins and recurrent state evolve as on cars). Two sizes: the 9x9 arena with 5 cars,
+and 1,000 simulated agents on a 100x100 surround arena (the same network; the observation only
+normalises row and column by the larger grid). One onnxruntime thread. Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np
+
+from edge.decide import DecisionStep
+from export.runtime import OnnxPolicy
+from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.rules import OBSTACLE, WALL, WATER
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+TARGETS_P99_MS = {5: 0.5, 1000: 10.0}
+KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+
+
+def _percentiles(samples_ns: list[int]) -> dict[str, float]:
+    ms = np.asarray(samples_ns) / 1e6
+    return {
+        "median": round(float(np.median(ms)), 4),
+        "p99": round(float(np.percentile(ms, 99)), 4),
+        "max": round(float(ms.max()), 4),
+    }
+
+
+def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
+    """Decide ``steps`` times, stepping the world with the commands; episodes restart at the end."""
+    world = ArenaBatch(config, 1, seed=seed)
+    decide = DecisionStep(OnnxPolicy(MODEL), config.task, config.spec)
+    total: list[int] = []
+    spans: dict[str, list[int]] = {"masking": [], "inference": [], "safety": []}
+    fresh = True
+    for i in range(steps + 5):
+        if fresh:
+            world.reset()
+            decide.reset()
+            static = {
+                k: frozenset(map(tuple, np.argwhere(world.layout[0] == c).tolist()))
+                for k, c in KINDS.items()
+            }
+        if config.task == "surround":
+            static["target"] = frozenset({tuple(world.target[0].tolist())})
+        slots = {int(s) + 1: int(s) for s in np.flatnonzero(world.present[0])}
+        cells = {car: tuple(world.pos[0, s].tolist()) for car, s in slots.items()}
+        t0 = time.perf_counter_ns()
+        decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
+        elapsed = time.perf_counter_ns() - t0
+        if i >= 5:  # warm-up
+            total.append(elapsed)
+            for name, value in decision.spans_ns.items():
+                spans[name].append(value)
+        commands = np.full(world.slots, 4)
+        commands[list(slots.values())] = np.minimum(decision.commands, 4)
+        _, _, done = world.step(commands[None])
+        fresh = bool(done[0])
+    agents = config.agents[1]
+    p99 = _percentiles(total)["p99"]
+    return {
+        "agents": agents,
+        "grid": [config.height, config.width],
+        "task": config.task,
+        "steps": steps,
+        "decision_ms": _percentiles(total),
+        "spans_ms": {name: _percentiles(v) for name, v in spans.items()},
+        "target_p99_ms": TARGETS_P99_MS[agents],
+        "met": p99 <= TARGETS_P99_MS[agents],
+    }
+
+
+def main() -> int:
+    small = run(ArenaConfig(task="find_water", agents=(5, 5), obstacles=(0, 9)), steps=2000)
+    large = run(
+        ArenaConfig(
+            task="surround", agents=(1000, 1000), obstacles=(200, 200), height=100, width=100
+        ),
+        steps=300,
+    )
+    print(json.dumps({"threads": 1, "sizes": [small, large]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,73 @@
+"""Which cars are driven right now, and the policy slot each one holds.
+
+A car is in the fleet when it has joined over the protocol (and its clock is synchronised) and
+the camera sees its marker. It leaves when its marker has not been seen for ``lost_s`` or when
+the link drops it (LEAVE, reboot, silence). The policy keeps recurrent state per slot; a car keeps
+its slot for as long as it stays, a new car takes a free slot with fresh memory, and a slot freed
+by a leaving car is reused only at a later step (the policy sees it absent for one step first,
+which also re-forms any group the leaver was in). The number of cars changes from one step to
+the next without a pause.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Change:
+    """What one :meth:`Fleet.update` did."""
+
+    joined: list[int] = field(default_factory=list)
+    left: list[int] = field(default_factory=list)
+
+
+class Fleet:
+    """Membership and slots, keyed by car id; ``markers`` maps car id -> marker id."""
+
+    def __init__(self, markers: Mapping[int, int], lost_s: float = 0.5) -> None:
+        self.markers = dict(markers)
+        self.lost_ns = int(lost_s * 1e9)
+        self.slot: dict[int, int] = {}
+        self.fresh: set[int] = set()
+        self._last_seen: dict[int, int] = {}
+        self._freed: set[int] = set()
+
+    @property
+    def size(self) -> int:
+        """Slots the policy needs: one past the highest slot in use (or being freed)."""
+        used = list(self.slot.values()) + list(self._freed)
+        return max(used) + 1 if used else 0
+
+    def update(self, seen_markers: Iterable[int], ready: Iterable[int], now_ns: int) -> Change:
+        """Fold in one camera frame's markers and the link's ready cars at ``now_ns``."""
+        seen = set(seen_markers)
+        for car, marker in self.markers.items():
+            if marker in seen:
+                self._last_seen[car] = now_ns
+        ready_set = set(ready)
+        change = Change()
+        self._freed.clear()
+        self.fresh.clear()
+        for car in sorted(self.slot):
+            lost = now_ns - self._last_seen.get(car, now_ns) > self.lost_ns
+            if lost or car not in ready_set:
+                self._freed.add(self.slot.pop(car))
+                change.left.append(car)
+        taken = set(self.slot.values()) | self._freed
+        for car in sorted(ready_set - self.slot.keys()):
+            if car in self.markers and self.markers[car] in seen:
+                free = next(s for s in range(len(taken) + 1) if s not in taken)
+                self.slot[car] = free
+                taken.add(free)
+                self.fresh.add(car)
+                change.joined.append(car)
+        return change
+
+    def reset(self) -> None:
+        """Forget every car (a new episode, or after an emergency stop)."""
+        self.slot.clear()
+        self.fresh.clear()
+        self._freed.clear()
+        self._last_seen.clear()

@@ -1,0 +1,160 @@
+"""The edge's decision step: safety filter, fleet slots, and masking equal to the simulation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from edge.decide import DecisionStep, TaskError, task_of
+from edge.fleet import Fleet
+from edge.safety import STOP, filter_moves
+from export.runtime import OnnxPolicy
+from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.rules import FREE, OBSTACLE, UP, WAIT, WALL, WATER
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+
+
+# --- safety filter ------------------------------------------------------------------------------
+@settings(max_examples=300, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(1, 12),
+    st.integers(0, 20),
+)
+def test_filter_never_two_cars_in_a_cell_nor_swaps(seed: int, cars: int, obstacles: int) -> None:
+    rng = np.random.default_rng(seed)
+    layout = np.zeros((6, 6), np.uint8)
+    cells = rng.permutation(36)
+    layout.flat[cells[:obstacles]] = OBSTACLE
+    free = cells[obstacles:]
+    cars = min(cars, len(free))
+    start = free[:cars]
+    pos = np.stack([start // 6, start % 6], axis=-1)
+    actions = rng.integers(0, 5, cars)
+    out = filter_moves(layout, pos, actions)
+    moves = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]])
+    dest = pos + moves[out.commands]
+    assert len({tuple(d) for d in dest}) == cars  # never two cars in one cell
+    assert ((dest >= 0) & (dest < 6)).all()  # never off the arena
+    assert (layout[dest[:, 0], dest[:, 1]] == FREE).all()  # never into an obstacle
+    for i in range(cars):
+        for j in range(cars):
+            swapped = (dest[i] == pos[j]).all() and (dest[j] == pos[i]).all()
+            assert i == j or not swapped
+    assert (out.commands[out.blocked] == WAIT).all()
+    assert (out.commands[~out.blocked] == actions[~out.blocked]).all()
+
+
+def test_filter_stops_a_car_seen_off_its_cell_and_respects_other_things() -> None:
+    layout = np.zeros((3, 3), np.uint8)
+    pos = np.array([[1, 1], [2, 2]])
+    out = filter_moves(
+        layout,
+        pos,
+        np.array([UP, UP]),
+        expected=np.array([[1, 0], [-1, -1]]),
+        others=np.array([[1, 2]]),
+    )
+    assert out.commands.tolist() == [STOP, WAIT]  # car 0 seen off its cell; car 1 blocked
+    assert out.stopped.tolist() == [True, False]
+    assert out.blocked.tolist() == [False, True]
+
+
+def test_filter_allows_following() -> None:
+    layout = np.zeros((4, 1), np.uint8)
+    out = filter_moves(layout, np.array([[1, 0], [2, 0]]), np.array([UP, UP]))
+    assert out.commands.tolist() == [UP, UP]
+
+
+# --- fleet ---------------------------------------------------------------------------------------
+def test_fleet_needs_join_and_sighting_and_keeps_slots() -> None:
+    fleet = Fleet({1: 11, 2: 12, 3: 13}, lost_s=0.1)
+    change = fleet.update({11, 12}, ready={1}, now_ns=0)
+    assert change.joined == [1] and fleet.slot == {1: 0} and fleet.fresh == {1}
+    change = fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=10_000_000)
+    assert change.joined == [2, 3] and fleet.slot == {1: 0, 2: 1, 3: 2}
+    assert fleet.fresh == {2, 3}
+    # car 2 stops being seen: it leaves after lost_s, its slot is not reused in that step
+    fleet.update({11, 13}, ready={1, 2, 3}, now_ns=50_000_000)
+    assert 2 in fleet.slot
+    change = fleet.update({11, 13}, ready={1, 2, 3}, now_ns=200_000_000)
+    assert change.left == [2] and fleet.slot == {1: 0, 3: 2} and fleet.size == 3
+    # it comes back: a fresh car, in the freed slot one step later
+    fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=210_000_000)
+    assert fleet.slot[2] == 1 and fleet.fresh == {2}
+    # the link drops car 1 (silence, LEAVE): it leaves at once
+    change = fleet.update({11, 12, 13}, ready={2, 3}, now_ns=220_000_000)
+    assert change.left == [1]
+
+
+# --- decision step == simulation ---------------------------------------------------------------
+def _static_cells(layout: np.ndarray) -> dict[str, frozenset[tuple[int, int]]]:
+    kinds = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+    return {
+        kind: frozenset(map(tuple, np.argwhere(layout == code).tolist()))
+        for kind, code in kinds.items()
+    }
+
+
+def test_task_of() -> None:
+    assert task_of("arena/find_water") == "find_water"
+    with pytest.raises(TaskError, match="magent/pursuit"):
+        task_of("magent/pursuit")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_decision_step_drives_like_the_simulation(seed: int) -> None:
+    """The edge's masking + policy + safety filter, fed the cells the camera would see, gives
+    the same episode as the simulator stepping the same policy on the same layout."""
+    cfg = ArenaConfig(task="find_water", agents=(1, 5), obstacles=(0, 9))
+    sim, edge_world = ArenaBatch(cfg, 1, seed=seed), ArenaBatch(cfg, 1, seed=seed)
+    sim.reset()
+    edge_world.reset()
+    reference = OnnxPolicy(MODEL, expected=cfg.spec)
+    reference.reset(sim.slots)
+    step = DecisionStep(OnnxPolicy(MODEL, expected=cfg.spec), "find_water", cfg.spec)
+    fresh = np.ones(sim.slots, bool)
+    static = _static_cells(edge_world.layout[0])
+    slots = {int(s) + 1: int(s) for s in np.flatnonzero(edge_world.present[0])}
+    for t in range(cfg.max_steps):
+        ref_actions = reference.act(sim.observe()[0], sim.present[0], sim.pos[0], fresh)
+        fresh[:] = False
+        cells = {car: tuple(edge_world.pos[0, slot]) for car, slot in slots.items()}
+        decision = step.decide(slots, set(slots) if t == 0 else set(), cells, static)
+        assert decision.actions.tolist() == ref_actions[list(slots.values())].tolist()
+        sim.step(ref_actions[None])
+        commands = np.full(edge_world.slots, WAIT)
+        commands[list(slots.values())] = decision.commands
+        assert (commands < STOP).all()
+        before = edge_world.pos.copy()
+        edge_world.step(commands[None])
+        # the filtered commands are conflict free: every move the edge sent happened
+        moves = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]])
+        assert (edge_world.pos == before + moves[commands][None]).all()
+    assert np.array_equal(sim.pos, edge_world.pos)
+    assert np.array_equal(sim.episode_return, edge_world.episode_return)
+    sim_returns = {car: float(sim.episode_return[0, slot]) for car, slot in slots.items()}
+    final = step.decide(
+        slots, set(), {c: tuple(edge_world.pos[0, s]) for c, s in slots.items()}, static
+    )
+    assert final.rewards.sum() == edge_world.last_reward[0].sum()
+    assert step.returns == pytest.approx(sim_returns)
+
+
+def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
+    spec = ArenaConfig().spec
+    step = DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec)
+    static = {"water": frozenset({(0, 4)}), "wall": frozenset({(0, 3), (0, 5)})}
+    d = step.decide({7: 0}, {7}, {7: (6, 4)}, static)
+    assert d.cars == (7,) and d.commands.shape == (1,)
+    d = step.decide({7: 0, 9: 2}, {9}, {7: (6, 4), 9: (8, 8)}, static, moving={7: UP})
+    assert d.cars == (7, 9) and d.commands[0] == WAIT  # a car still moving is not re-commanded
+    d = step.decide({9: 2}, set(), {9: (8, 8)}, static)
+    assert d.cars == (9,) and 7 not in step.last_action
+    d = step.decide({}, set(), {}, static)
+    assert d.cars == () and d.commands.shape == (0,)
