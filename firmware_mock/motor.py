@@ -34,10 +34,19 @@ DRAIN_PER_CELL_MV = 2
 
 
 class World(Protocol):
-    """Decides where a move ends; called when the move's time is up."""
+    """Decides where a move ends; told when a move starts and when one is cut short."""
+
+    def begin(self, car_id: int, pose: Pose, action: int) -> None:
+        """A move of ``car_id`` from ``pose`` started (it ends after the cell time)."""
+        ...
+
+    def abort(self, car_id: int) -> None:
+        """The move in progress was cut (stop, watchdog, estop): the car stays where it was."""
+        ...
 
     def move(self, car_id: int, pose: Pose, action: int) -> Pose:
-        """The cell ``car_id`` ends on after ``action`` from ``pose``."""
+        """The cell ``car_id`` ends on after ``action`` from ``pose``; called when the move's
+        time is up."""
         ...
 
 
@@ -47,6 +56,12 @@ class GridWorld:
 
     height: int = 9
     width: int = 9
+
+    def begin(self, car_id: int, pose: Pose, action: int) -> None:
+        """Alone on the grid, nothing to reserve."""
+
+    def abort(self, car_id: int) -> None:
+        """Alone on the grid, nothing to release."""
 
     def move(self, car_id: int, pose: Pose, action: int) -> Pose:
         """The rules' delta for ``action``, unless it leaves the grid."""
@@ -127,6 +142,7 @@ class Drive:
         if action == WAIT:
             self._finish()
             return
+        self.world.begin(self.car_id, self.pose, action)
         self._timer = asyncio.get_running_loop().call_later(self.cell_time_s, self._finish)
         self.on_change()
 
@@ -137,6 +153,7 @@ class Drive:
         self.stalled = self.faults.stuck_wheel and action != WAIT
         if self.stalled:
             self.stalls += 1
+            self.world.abort(self.car_id)
         else:
             if action != WAIT:
                 self.pose = self.world.move(self.car_id, self.pose, action)
@@ -157,6 +174,7 @@ class Drive:
         if self._current is not None:
             self._current = None
             self.aborted += 1
+            self.world.abort(self.car_id)
             self.on_change()
 
 
