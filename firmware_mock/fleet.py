@@ -16,7 +16,7 @@ from typing import Any
 from firmware_mock.faults import Faults
 
 KEY_BYTES = 32
-_CAR_FIELDS = {"id", "marker", "port", "address", "key", "key_file", "start", "faults"}
+_CAR_FIELDS = {"id", "marker", "port", "address", "key", "key_file", "serial", "start", "faults"}
 _HEX = re.compile(r"[0-9a-fA-F]*")
 
 

@@ -1,0 +1,448 @@
+"""The edge's link to its cars: joins, clock sync, heartbeats and the 10 ms command dispatcher.
+
+``CarLink`` puts the sans-I/O ``EdgeProtocol`` on a ``Transport`` and runs what the protocol leaves
+to the edge (docs/protocol.md section 14): when to synchronise clocks (right after a join or a
+reboot, then whenever the best sample is older than ``sync_period_s``), how to treat ``Rejected``
+frames (counted by reason, never raised: a forged or garbled frame must not stop the fleet), and
+retransmission. ``dispatch`` sends a step's commands back to back, each valid until the step's
+deadline in the car's own clock, then resends the *identical bytes* of an unacknowledged command
+(the car answers a copy with a duplicate ACK and does not run it twice) until it is acknowledged
+or the deadline is too close for a frame to arrive in time. Nothing is sent within
+``send_margin_ns`` of the deadline, and the car refuses anything that arrives after it.
+
+Keepalive is the runtime's: it sends a command (``wait`` included) every step. If steps pause
+past the cars' watchdog (300 ms) they stop and report WATCHDOG; the next command resumes them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import secrets
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+from edge import protocol as ep
+from edge.fleetfile import CarEntry
+from edge.transport import Transport, TransportError
+
+RETRY_NS = 2_000_000  # resend an unacked command after this long (loopback rtt is ~0.3 ms)
+SEND_MARGIN_NS = 1_000_000  # no send this close to the deadline: it would arrive expired
+SYNC_RETRY_NS = 200_000_000  # an unanswered time request is repeated after this long
+TICK_S = 0.05  # housekeeping period: re-syncs, silence
+ESTOP_REPEATS_S = (0.003, 0.006)  # an emergency stop is sent three times, in case one is lost
+COUNTERS = (
+    "joins",
+    "reboots",
+    "leaves",
+    "syncs",
+    "time_requests",
+    "commands",
+    "retransmits",
+    "estops",
+    "probes",
+    "send_errors",
+)
+_ACCEPTING = (ep.AckResult.ACCEPTED, ep.AckResult.DUPLICATE)
+
+
+@dataclass(slots=True)
+class SentCommand:
+    """The last command sent to a car in its session; ``outcome`` is pending until an ACK.
+
+    ``accepted``: the car took it (it runs, or ran); ``refused``: the car will never run it.
+    """
+
+    seq: int
+    action: int
+    deadline_us: int  # in the car's clock
+    outcome: str = "pending"
+
+
+@dataclass
+class CarState:
+    """What the link knows of one car (read-only for callers)."""
+
+    car_id: int
+    marker: int
+    last_heard_ns: int | None = None
+    status: ep.StatusReport | None = None  # newest STATUS: moving, done_seq, faults, battery
+    command: SentCommand | None = None
+    sync_requested_ns: int | None = None
+    sync_rtt_ns: int | None = None  # round trip of the best sync sample: offset known to ±rtt/2
+    left: str | None = None  # the LEAVE reason, until the car joins again
+
+
+@dataclass(slots=True)
+class CommandReport:
+    """One car's command in one dispatch.
+
+    ``result``: the car's ACK result (``accepted``, ``duplicate`` (a resend answered after the
+    first ACK was lost: accepted once), ``expired``, ``estopped``, ``bad_time``, ``replay``), or
+    ``no_ack`` (sent, nothing came back in time), ``not_ready`` (not joined, synced or heard from:
+    nothing sent), ``too_late`` (the deadline was too close to send), ``rebooted`` / ``left``.
+    """
+
+    car_id: int
+    action: int
+    seq: int = 0
+    first_sent_ns: int | None = None
+    attempts: int = 0
+    acked: bool = False  # the car accepted it, hence received it within its validity
+    acked_ns: int | None = None  # edge clock when the ACK arrived
+    car_received_ns: int | None = None  # car receive time converted to the edge clock
+    result: str = "no_ack"
+    car_deadline_us: int | None = None  # the deadline written in the frame (car clock)
+    car_rx_us: int | None = None  # the car's receive time from the ACK (car clock)
+
+
+@dataclass
+class DispatchReport:
+    """What became of one step's commands; every count is taken from what happened."""
+
+    decision_ns: int
+    deadline_ns: int
+    cars: dict[int, CommandReport]  # per car id
+    on_time: int = 0
+    retried: int = 0
+    missed: int = 0
+    not_ready: int = 0
+    late_sends: int = 0  # sends that completed at or after the deadline; must stay 0
+
+    @property
+    def all_acked_ns(self) -> int | None:
+        """When the last ACK arrived, if every command sent was accepted."""
+        sent = [r for r in self.cars.values() if r.attempts]
+        if not sent or not all(r.acked for r in sent):
+            return None
+        return max(r.acked_ns for r in sent if r.acked_ns is not None)
+
+
+@dataclass(slots=True)
+class _Flight:
+    report: CommandReport
+    frame: bytes
+    next_send_ns: int = 0
+
+
+class CarLink:
+    """Protocol + transport for a fleet; see the module docstring."""
+
+    def __init__(
+        self,
+        cars: Sequence[CarEntry],
+        transport: Transport,
+        *,
+        clock: Callable[[], int] = time.monotonic_ns,
+        validity_ns: int = ep.DEFAULT_VALIDITY_NS,
+        sync_period_s: float = 1.0,
+        silence_s: float = 1.0,
+        retry_ns: int = RETRY_NS,
+        send_margin_ns: int = SEND_MARGIN_NS,
+    ) -> None:
+        self.transport = transport
+        self.validity_ns = validity_ns
+        self.changed = asyncio.Event()
+        self._clock = clock
+        self._keys = {c.car_id: c.key for c in cars}
+        self._proto = ep.EdgeProtocol(self._keys, clock=clock)
+        self._cars = {c.car_id: CarState(c.car_id, c.marker) for c in cars}
+        self._sync_period_ns = int(sync_period_s * 1e9)
+        self._silence_ns = int(silence_s * 1e9)
+        self._retry_ns = retry_ns
+        self._send_margin_ns = send_margin_ns
+        self._rejected: Counter[str] = Counter()
+        self._counts: Counter[str] = Counter({name: 0 for name in COUNTERS})
+        self._flights: dict[int, _Flight] = {}
+        self._dispatching = False
+        self._resolved = asyncio.Event()
+        self._ready_seen: frozenset[int] = frozenset()
+        self._task: asyncio.Task[None] | None = None
+        self._open = False
+
+    # --- lifecycle ---
+    async def start(self) -> None:
+        """Open the transport and start housekeeping; cars join by themselves (JOIN)."""
+        await self.transport.open(self._on_frame)
+        self._open = True
+        self._task = asyncio.create_task(self._housekeeping(), name="car-link")
+
+    async def close(self) -> None:
+        """Stop housekeeping and close the transport (call ``estop_all`` first to stop cars)."""
+        self._open = False
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        self.transport.close()
+
+    # --- queries ---
+    def ready_cars(self) -> set[int]:
+        """Cars that can be commanded: joined, clock synchronised, heard within ``silence_s``."""
+        now = self._clock()
+        return {
+            c
+            for c, st in self._cars.items()
+            if st.last_heard_ns is not None
+            and now - st.last_heard_ns <= self._silence_ns
+            and self._proto.synced(c)
+        }
+
+    def state(self, car_id: int) -> CarState:
+        """The link's view of one car (``KeyError`` for a car not in the fleet)."""
+        return self._cars[car_id]
+
+    def move_finished(self, car_id: int) -> bool:
+        """The car reported it is idle and will not start the last command sent to it later.
+
+        True when the newest STATUS says not moving and either its ``done_seq`` reached the last
+        command (or none was sent), or that command can no longer run: the car refused it, or it
+        was never acknowledged and the STATUS was made after its deadline (a car never starts a
+        command past its deadline, and an accepted one shows as moving or done). An engaged
+        emergency stop also counts as finished: nothing will move.
+        """
+        st = self._cars.get(car_id)
+        if st is None or st.status is None or st.status.moving:
+            return False
+        status, cmd = st.status, st.command
+        if cmd is None or status.done_seq >= cmd.seq or status.faults & ep.Fault.ESTOP:
+            return True
+        if cmd.outcome == "refused":
+            return True
+        return cmd.outcome == "pending" and status.car_time_us > cmd.deadline_us
+
+    def counters(self) -> dict[str, object]:
+        """Everything counted: rejected frames by reason, events, sends, transport drops."""
+        return {
+            "rejected": dict(self._rejected),
+            **self._counts,
+            "transport_dropped": dict(self.transport.dropped),
+        }
+
+    # --- sending ---
+    def _send(self, car_id: int, frame: bytes) -> bool:
+        try:
+            self.transport.send(car_id, frame)
+        except (TransportError, OSError):
+            self._counts["send_errors"] += 1
+            return False
+        return True
+
+    def _request_sync(self, car_id: int, now: int) -> None:
+        if car_id in self._flights:  # its seq would overtake the command's resends (replay)
+            return
+        self._cars[car_id].sync_requested_ns = now
+        self._counts["time_requests"] += 1
+        self._send(car_id, self._proto.encode_time_request(car_id))
+
+    def _probe(self, car_id: int) -> None:
+        """Make a car that is joined to someone else's session (an edge restart) JOIN again.
+
+        A frame authenticated with the car's key but of another session is answered with a JOIN
+        carrying the car's current session (section 6), which the edge then accepts as new.
+        """
+        session = secrets.randbelow(0xFFFF_FFFF) + 1
+        frame = ep.encode(
+            ep.MsgType.TIME_REQUEST, car_id, session, 1, 0, self._keys[car_id], {"t1_ns": 0}
+        )
+        self._counts["probes"] += 1
+        self._send(car_id, frame)
+
+    def estop_all(self, engage: bool = True) -> int:
+        """Emergency stop (or release) every joined car now; returns how many it was sent to.
+
+        Synchronous and best effort, for ``finally`` blocks and signal handlers installed with
+        ``loop.add_signal_handler`` (a plain ``signal.signal`` handler could interrupt the
+        protocol core mid-frame). When an event loop is running the round is repeated twice a
+        few ms later with fresh frames (engaging twice is harmless, a lost frame is not). A
+        release needs a synchronised clock, so cars without one are skipped.
+        """
+        sent = self._estop_round(engage)
+        with contextlib.suppress(RuntimeError):  # no running loop: one round is all we can do
+            loop = asyncio.get_running_loop()
+            for delay in ESTOP_REPEATS_S:
+                loop.call_later(delay, self._estop_round, engage)
+        return sent
+
+    def _estop_round(self, engage: bool) -> int:
+        if not self._open:
+            return 0
+        sent = 0
+        for car_id in self._proto.joined_cars():
+            try:
+                frame = self._proto.encode_estop(car_id, engage)
+            except ep.NotReady:
+                continue
+            sent += self._send(car_id, frame)
+        self._counts["estops"] += sent
+        return sent
+
+    # --- dispatch ---
+    async def dispatch(
+        self, actions: Mapping[int, int], decision_ns: int, deadline_ns: int | None = None
+    ) -> DispatchReport:
+        """Send one step's commands, resend unacked ones while the deadline allows, report.
+
+        Each command is valid until ``deadline_ns`` (default ``decision_ns + validity_ns``) in
+        the car's clock. Returns when every command sent is answered or the deadline has passed.
+        Cars that are not ready are reported, not raised; an action outside 0-5 is a
+        ``ValueError`` before anything is sent.
+        """
+        if self._dispatching:
+            raise RuntimeError("dispatch already in progress")
+        deadline = decision_ns + self.validity_ns if deadline_ns is None else deadline_ns
+        commands = {c: CommandReport(c, int(ep.Action(a))) for c, a in actions.items()}
+        report = DispatchReport(decision_ns, deadline, commands)
+        cutoff = deadline - self._send_margin_ns
+        ready = self.ready_cars()
+        self._dispatching = True
+        try:
+            for car_id, r in commands.items():
+                if car_id not in ready:
+                    r.result = "not_ready"
+                    continue
+                now = self._clock()
+                if now >= cutoff:
+                    r.result = "too_late"
+                    continue
+                frame = self._proto.encode_command(car_id, r.action, validity_ns=deadline - now)
+                r.first_sent_ns = now
+                self._flights[car_id] = flight = _Flight(r, frame)
+                self._transmit(flight, report)
+                self._counts["commands"] += 1
+            for car_id, flight in self._flights.items():
+                decoded = ep.decode(flight.frame)
+                r = flight.report
+                r.seq, r.car_deadline_us = decoded.seq, decoded.fields["deadline_us"]
+                self._cars[car_id].command = SentCommand(r.seq, r.action, r.car_deadline_us)
+            await self._await_acks(report, cutoff)
+        finally:
+            self._flights.clear()
+            self._dispatching = False
+        for r in commands.values():
+            if r.result == "not_ready":
+                report.not_ready += 1
+            elif r.acked:
+                report.on_time += 1
+            else:
+                report.missed += 1
+            report.retried += r.attempts > 1
+        return report
+
+    def _transmit(self, flight: _Flight, report: DispatchReport) -> None:
+        r = flight.report
+        sent = self._send(r.car_id, flight.frame)
+        after = self._clock()
+        if sent:
+            r.attempts += 1
+            report.late_sends += after >= report.deadline_ns
+        flight.next_send_ns = after + self._retry_ns
+
+    async def _await_acks(self, report: DispatchReport, cutoff: int) -> None:
+        while self._flights:
+            for flight in list(self._flights.values()):
+                now = self._clock()
+                if now >= cutoff:
+                    break
+                if flight.next_send_ns <= now:
+                    self._transmit(flight, report)
+                    self._counts["retransmits"] += 1
+            now = self._clock()
+            if now >= report.deadline_ns:
+                return
+            resends = [f.next_send_ns for f in self._flights.values() if f.next_send_ns < cutoff]
+            wake = min([report.deadline_ns, *resends])
+            self._resolved.clear()
+            if wake > now:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout((wake - now) / 1e9):
+                        await self._resolved.wait()
+
+    def _settle(self, car_id: int, result: str) -> None:
+        """End the car's command in the dispatch under way, if it has one."""
+        flight = self._flights.pop(car_id, None)
+        if flight is not None:
+            flight.report.result = result
+            if not self._flights:
+                self._resolved.set()
+
+    # --- frames in ---
+    def _on_frame(self, data: bytes) -> None:
+        event = self._proto.receive(data)
+        if isinstance(event, ep.Rejected):
+            self._rejected[event.reason] += 1
+            if event.reason == "not_joined" and event.car_id is not None:
+                self.transport.confirm_source(event.car_id)
+                self._probe(event.car_id)
+            return
+        now = self._clock()
+        st = self._cars[event.car_id]
+        st.last_heard_ns = now
+        self.transport.confirm_source(event.car_id)
+        if isinstance(event, ep.Acked):
+            self._on_ack(event, st, now)
+            return
+        if isinstance(event, ep.Joined):
+            self._on_join(event, st, now)
+        elif isinstance(event, ep.TimeSynced):
+            self._counts["syncs"] += 1
+            st.sync_rtt_ns = event.rtt_ns
+        elif isinstance(event, ep.StatusReport):
+            if st.status is None or event.car_time_us >= st.status.car_time_us:
+                st.status = event
+        else:
+            self._counts["leaves"] += 1
+            self._forget(st, "left")
+            st.left = event.reason
+        self.changed.set()
+
+    def _forget(self, st: CarState, why: str) -> None:
+        """The car's session ended: what it reported and what was sent to it no longer apply."""
+        st.status = st.command = st.sync_requested_ns = st.sync_rtt_ns = None
+        self._settle(st.car_id, why)
+
+    def _on_join(self, event: ep.Joined, st: CarState, now: int) -> None:
+        if not event.repeat:
+            self._counts["joins"] += 1
+            self._counts["reboots"] += event.reboot
+            self._forget(st, "rebooted")
+            st.marker, st.left = event.marker, None
+        self._request_sync(st.car_id, now)
+
+    def _on_ack(self, event: ep.Acked, st: CarState, now: int) -> None:
+        cmd = st.command
+        if cmd is None or event.ref_seq != cmd.seq:
+            return  # an estop's, a refused time request's, or an older command's
+        accepted = event.result in _ACCEPTING
+        if cmd.outcome == "pending":
+            cmd.outcome = "accepted" if accepted else "refused"
+        flight = self._flights.get(st.car_id)
+        if flight is None:
+            return
+        r = flight.report
+        r.acked, r.acked_ns = accepted, now
+        r.car_received_ns, r.car_rx_us = event.received_at_ns, event.car_rx_us
+        self._settle(st.car_id, event.result.name.lower())
+
+    # --- housekeeping ---
+    async def _housekeeping(self) -> None:
+        while True:
+            await asyncio.sleep(TICK_S)
+            self._tick()
+
+    def _tick(self) -> None:
+        """Re-sync clocks that are due (or whose request went unanswered); notice silences."""
+        now = self._clock()
+        for car_id in self._proto.joined_cars():
+            age = self._proto.sync_age_ns(car_id)
+            asked = self._cars[car_id].sync_requested_ns
+            due = age is None or age >= self._sync_period_ns
+            if due and (asked is None or now - asked >= SYNC_RETRY_NS):
+                self._request_sync(car_id, now)
+        ready = frozenset(self.ready_cars())
+        if ready != self._ready_seen:
+            self._ready_seen = ready
+            self.changed.set()
