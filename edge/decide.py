@@ -108,32 +108,14 @@ class DecisionStep:
         cars = tuple(sorted(slots, key=slots.get))
         if not cars:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
-        n_slots = max(slots.values()) + 1
         layout, padded = self.layout(static)
-        target = None
-        if self.task == "surround":
-            target_cells = sorted(static.get("target", ()))
-            target = np.array([target_cells[0] if target_cells else (-1, -1)], np.int64)
-        pos = np.zeros((1, n_slots, 2), np.int64)
-        present = np.zeros((1, n_slots), bool)
+        pos, present, target = self._scene(slots, cars, cells_of, static)
+        n_slots = pos.shape[1]
         last_action = np.full((1, n_slots), -1, np.int64)
         last_reward = np.zeros((1, n_slots), np.float32)
         idx = np.array([slots[c] for c in cars], np.int64)
-        pos[0, idx] = [cells_of[c] for c in cars]
-        present[0, idx] = True
-        rewards = np.zeros(len(cars), np.float32)
-        if self.t > 0:
-            step = np.array([self.t])
-            all_rewards = task_rewards(self.task, layout[None], pos, present, target, step)[0]
-            rewards = all_rewards[idx]
-        for i, car in enumerate(cars):
-            if car in fresh or car not in self.last_action:
-                self.last_action[car] = -1
-                self.last_reward[car] = 0.0
-                self.expected.pop(car, None)
-            else:
-                self.last_reward[car] = float(rewards[i])
-                self.returns[car] = self.returns.get(car, 0.0) + float(rewards[i])
+        rewards = self._settle(cars, fresh, layout, pos, present, target)
+        for car in cars:
             last_action[0, slots[car]] = self.last_action[car]
             last_reward[0, slots[car]] = self.last_reward[car]
         codes = scene_codes(padded, pos, present, self.spec.view, target)
@@ -156,6 +138,68 @@ class DecisionStep:
             stopped=int(filtered.stopped.sum()),
             spans_ns={"masking": t1 - t0, "inference": t2 - t1, "safety": t3 - t2},
         )
+
+    def settle(
+        self,
+        slots: Mapping[int, int],
+        cells_of: Mapping[int, tuple[int, int]],
+        static: Mapping[str, frozenset[tuple[int, int]]],
+    ) -> np.ndarray:
+        """Credit the rewards of the step that just ended without deciding again (the end of an
+        episode); returns them in fleet order."""
+        cars = tuple(sorted(slots, key=slots.get))
+        if not cars or self.t == 0:
+            return np.zeros(len(cars), np.float32)
+        layout, _ = self.layout(static)
+        pos, present, target = self._scene(slots, cars, cells_of, static)
+        return self._settle(cars, set(), layout, pos, present, target)
+
+    def _scene(
+        self,
+        slots: Mapping[int, int],
+        cars: tuple[int, ...],
+        cells_of: Mapping[int, tuple[int, int]],
+        static: Mapping[str, frozenset[tuple[int, int]]],
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Positions (1, S, 2), presence (1, S) and the surround target (1, 2) of one arena."""
+        n_slots = max(slots.values()) + 1
+        pos = np.zeros((1, n_slots, 2), np.int64)
+        present = np.zeros((1, n_slots), bool)
+        idx = [slots[c] for c in cars]
+        pos[0, idx] = [cells_of[c] for c in cars]
+        present[0, idx] = True
+        target = None
+        if self.task == "surround":
+            target_cells = sorted(static.get("target", ()))
+            target = np.array([target_cells[0] if target_cells else (-1, -1)], np.int64)
+        return pos, present, target
+
+    def _settle(
+        self,
+        cars: tuple[int, ...],
+        fresh: set[int],
+        layout: np.ndarray,
+        pos: np.ndarray,
+        present: np.ndarray,
+        target: np.ndarray | None,
+    ) -> np.ndarray:
+        """Each car's reward for the step that ended (the arena's own reward code), added to its
+        return; a new car starts with no last action and no reward."""
+        rewards = np.zeros(len(cars), np.float32)
+        if self.t > 0:
+            step = np.array([self.t])
+            all_rewards = task_rewards(self.task, layout[None], pos, present, target, step)[0]
+            rewards = all_rewards[np.flatnonzero(present[0])]  # slot order is fleet order
+        for i, car in enumerate(cars):
+            if car in fresh or car not in self.last_action:
+                self.last_action[car] = -1
+                self.last_reward[car] = 0.0
+                self.expected.pop(car, None)
+                rewards[i] = 0.0
+            else:
+                self.last_reward[car] = float(rewards[i])
+                self.returns[car] = self.returns.get(car, 0.0) + float(rewards[i])
+        return rewards
 
     def _filter(
         self,

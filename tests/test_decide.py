@@ -139,10 +139,8 @@ def test_decision_step_drives_like_the_simulation(seed: int) -> None:
     assert np.array_equal(sim.pos, edge_world.pos)
     assert np.array_equal(sim.episode_return, edge_world.episode_return)
     sim_returns = {car: float(sim.episode_return[0, slot]) for car, slot in slots.items()}
-    final = step.decide(
-        slots, set(), {c: tuple(edge_world.pos[0, s]) for c, s in slots.items()}, static
-    )
-    assert final.rewards.sum() == edge_world.last_reward[0].sum()
+    cells = {c: tuple(edge_world.pos[0, s]) for c, s in slots.items()}
+    assert step.settle(slots, cells, static).sum() == edge_world.last_reward[0].sum()
     assert step.returns == pytest.approx(sim_returns)
 
 

@@ -1,0 +1,283 @@
+"""``udan-edge``: drive a fleet from a camera with an exported policy.
+
+    udan-edge --camera /dev/video0 --model policy.onnx --fleet fleet.toml [--transport udp]
+    udan-edge --sim [--cars 5] [--duration 30]      # virtual camera + mock fleet, bundled policy
+
+``--sim`` starts the HIL world (``python -m hil.world``: simulated arena, mock cars on loopback
+UDP, the virtual camera) as its own process and drives it with this same runtime; the edge
+never imports it. Bad input — a missing or corrupt model, a camera that cannot be opened, a
+malformed fleet file, a transport that cannot be bound — is one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from edge.camera import CameraError, FrameGrabber, open_camera
+from edge.decide import DecisionStep, TaskError, task_of
+from edge.fleet import Fleet
+from edge.fleetfile import FleetFileError, load_fleet
+from edge.geometry import ArenaGeometry
+from edge.link import CarLink
+from edge.runtime import LoopConfig, Runtime, WorldError
+from edge.telemetry import Telemetry
+from edge.transport import TransportError, open_transport
+from edge.vision import Vision, VisionError
+from export.metadata import MetadataError, obs_spec
+
+PROG = "udan-edge"
+BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+SIM_MARKER_BASE = 10
+
+
+class UsageError(ValueError):
+    """A bad option or input, reported in one line."""
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        print(f"{PROG}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    src = p.add_argument_group("what to drive")
+    src.add_argument("--sim", action="store_true", help="virtual camera + mock fleet (HIL world)")
+    src.add_argument("--camera", help="/dev/videoN, an index, a video file, a folder, virtual://N")
+    src.add_argument("--model", type=Path, help=f"exported policy (default: {BUNDLED_MODEL.name} "
+                     "of models/find_water with --sim)")  # fmt: skip
+    src.add_argument("--fleet", type=Path, help="fleet.toml: car id, marker, address, key")
+    src.add_argument("--calibration", help="OpenCV camera calibration YAML (undistortion)")
+    link = p.add_argument_group("link to the cars")
+    link.add_argument("--transport", default="udp", help="udp (default), serial or can")
+    link.add_argument("--listen", default="0.0.0.0:9000", help="udp: HOST:PORT to listen on")
+    link.add_argument("--can-interface", default="socketcan", help="can: python-can interface")
+    link.add_argument("--can-channel", default="vcan0", help="can: channel")
+    run = p.add_argument_group("run")
+    run.add_argument("--duration", type=float, help="seconds to run (default: until Ctrl-C)")
+    run.add_argument("--step-timeout", type=float, default=1.0, help="longest step wait (s)")
+    run.add_argument("--lost", type=float, default=0.5, help="a car unseen this long leaves (s)")
+    run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
+    run.add_argument("--episodes", type=int, help="with --world: episodes to play")
+    run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
+    out = p.add_argument_group("output")
+    out.add_argument("--report", type=Path, help="write the totals as JSON here at exit")
+    out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
+    out.add_argument("--quiet", action="store_true", help="no live summary line")
+    sim = p.add_argument_group("--sim")
+    sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
+    sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
+    sim.add_argument("--video", type=Path, help="record the virtual camera to this MP4")
+    sim.add_argument("--seed", type=int, default=0, help="episode layouts")
+    sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
+    return p
+
+
+def _host_port(text: str, what: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise UsageError(f"{what} {text!r} is not HOST:PORT")
+    return host, int(port)
+
+
+def _writable(path: Path | None, what: str) -> None:
+    if path is not None and not path.resolve().parent.is_dir():
+        raise UsageError(f"{what} {path}: folder {path.resolve().parent} does not exist")
+
+
+def load_policy(path: Path, geometry: ArenaGeometry) -> tuple[Any, DecisionStep]:
+    """The ONNX policy and its decision step; refuses a model the edge cannot drive cars with."""
+    from export.runtime import OnnxPolicy
+
+    if not path.is_file():
+        raise UsageError(f"model {path}: no such file")
+    try:
+        policy = OnnxPolicy(path)
+    except MetadataError as err:
+        raise UsageError(f"model {path}: {err}") from None
+    except Exception as err:  # onnxruntime raises its own types for a corrupt file
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise UsageError(f"model {path}: cannot be loaded by onnxruntime: {first}") from None
+    spec = obs_spec(policy.graph.metadata)
+    if (spec.height, spec.width) != (geometry.rows, geometry.cols):
+        raise UsageError(
+            f"model {path} was trained on a {spec.height}x{spec.width} arena; "
+            f"this arena is {geometry.rows}x{geometry.cols}"
+        )
+    task = task_of(policy.graph.metadata["env"])
+    return policy, DecisionStep(policy, task, spec, geometry)
+
+
+def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
+    if args.transport == "udp":
+        return {"listen": args.listen}
+    if args.transport == "can":
+        return {"interface": args.can_interface, "channel": args.can_channel}
+    return {}
+
+
+async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
+    geometry = ArenaGeometry()
+    _, decide = load_policy(args.model, geometry)
+    cars = load_fleet(args.fleet)
+    vision = Vision(
+        geometry, car_markers=[c.marker for c in cars], calibration_file=args.calibration
+    )
+    grabber = FrameGrabber(open_camera(args.camera))
+    transport = open_transport(args.transport, cars, **_transport_options(args))
+    link = CarLink(cars, transport)
+    telemetry = Telemetry(args.telemetry, live=not args.quiet)
+    config = LoopConfig(
+        step_timeout_s=args.step_timeout,
+        duration_s=args.duration,
+        episodes=args.episodes,
+        episode_steps=args.episode_steps,
+    )
+    fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
+    runtime = Runtime(grabber, vision, link, decide, fleet, telemetry, config, world=world)
+    await link.start()
+    try:
+        return await runtime.run()
+    finally:
+        await link.close()
+        telemetry.close()
+
+
+def _write_sim_fleet(folder: Path, cars: int) -> Path:
+    """A fleet file for the mock cars: fresh random keys; no port (the world binds any free one,
+    the edge learns it from the car's authenticated JOIN)."""
+    lines = []
+    for car in range(1, cars + 1):
+        lines += [
+            "[[car]]",
+            f"id = {car}",
+            f"marker = {SIM_MARKER_BASE + car}",
+            f'key = "{secrets.token_hex(32)}"',
+            "",
+        ]
+    path = folder / "fleet.toml"
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path
+
+
+def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
+    """``python -m hil.world`` as its own process; returns it and its ready line."""
+    cmd = [
+        sys.executable, "-m", "hil.world",
+        "--fleet", str(fleet), "--edge", edge, "--camera-name", camera,
+        "--agents", f"1-{args.cars}", "--obstacles", args.obstacles, "--seed", str(args.seed),
+        "--cell-time-ms", str(args.cell_time_ms),
+    ]  # fmt: skip
+    if args.video:
+        cmd += ["--video", str(args.video)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
+    line = proc.stdout.readline() if proc.stdout else ""
+    try:
+        ready = json.loads(line)
+    except json.JSONDecodeError:
+        proc.wait(10)
+        raise UsageError(f"--sim: the HIL world did not start (exit {proc.returncode})") from None
+    return proc, ready
+
+
+async def _sim(args: argparse.Namespace) -> dict[str, Any]:
+    if not 1 <= args.cars <= 5:
+        raise UsageError(f"--cars {args.cars}: the arena plays 1-5 cars")
+    args.model = args.model or BUNDLED_MODEL
+    with tempfile.TemporaryDirectory(prefix="udan-sim-") as tmp:
+        args.fleet = _write_sim_fleet(Path(tmp), args.cars)
+        port = _free_udp_port()
+        args.listen = f"127.0.0.1:{port}"
+        camera = f"udan-sim-{os.getpid()}"
+        args.camera = f"virtual://{camera}"
+        proc, ready = _start_world(args, args.fleet, args.listen, camera)
+        try:
+            report = await _drive(args, ("127.0.0.1", ready["control_port"]))
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+            try:
+                tail, _ = proc.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                tail, _ = proc.communicate()
+        world = _last_json(tail)
+        if world is not None:
+            report["world"] = world
+        return report
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _last_json(text: str | None) -> dict[str, Any] | None:
+    for line in reversed((text or "").splitlines()):
+        with contextlib.suppress(json.JSONDecodeError):
+            value = json.loads(line)
+            if isinstance(value, dict):
+                return value
+    return None
+
+
+def _event_loop_runner() -> Any:
+    """uvloop's runner when installed (its timers wake on time; asyncio's round to 1 ms)."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run
+    return uvloop.run
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit code (2 on bad input)."""
+    args = _parser().parse_args(argv)
+    try:
+        _writable(args.report, "--report")
+        _writable(args.telemetry, "--telemetry")
+        _writable(args.video, "--video")
+        if args.sim:
+            runner = _sim(args)
+        else:
+            for name in ("camera", "model", "fleet"):
+                if getattr(args, name) is None:
+                    raise UsageError(f"--{name} is required (or use --sim)")
+            world = _host_port(args.world, "--world") if args.world else None
+            runner = _drive(args, world)
+        report = _event_loop_runner()(runner)
+    except (
+        UsageError, CameraError, VisionError, FleetFileError, TransportError, TaskError,
+        WorldError,
+    ) as err:  # fmt: skip
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{PROG}: error: {err.strerror or err}", file=sys.stderr)
+        return 2
+    except Exception as err:  # every car got its emergency stop in the runtime's finally
+        print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
+        return 1
+    if args.report is not None:
+        args.report.write_text(json.dumps(report, indent=1), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,207 @@
+"""What the runtime measured: spans per frame and per step, counts, a live line, a report.
+
+Spans of the timing model (DESIGN.md), in the edge's monotonic clock (the cars' receive times
+come back converted to it, and on one machine every process shares it):
+
+- ``frame_to_state``: camera capture -> cars' cells known (vision + fleet update);
+- ``state_to_commands``: cells known -> every command of the step ready (masking, grouping,
+  inference, safety);
+- ``commands_to_received``: decision -> the last car of the step received its command (from
+  the acks' receive times); ``decision_to_acked`` is the same until the last ack is back.
+
+The runtime runs for hours, so totals are fixed-size log histograms (about 1.6 % bin width),
+not growing lists; the live line uses the last few hundred samples. Every record also goes,
+one JSON object per line, to the telemetry file when one is given.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from collections import Counter, deque
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+SPANS = ("frame_to_state", "state_to_commands", "commands_to_received", "decision_to_acked")
+_LOG_MIN_NS, _BINS_PER_DECADE, _DECADES = 1_000, 64, 8  # 1 us .. 100 s
+
+
+class Histogram:
+    """Log-binned durations (ns), constant memory; percentiles to about one bin width."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(_BINS_PER_DECADE * _DECADES + 1, np.int64)
+        self.n = 0
+        self.max_ns = 0
+
+    def add(self, ns: int) -> None:
+        """Count one duration."""
+        ratio = max(ns, _LOG_MIN_NS) / _LOG_MIN_NS
+        b = min(int(np.log10(ratio) * _BINS_PER_DECADE), len(self.counts) - 1)
+        self.counts[b] += 1
+        self.n += 1
+        self.max_ns = max(self.max_ns, ns)
+
+    def edges_ms(self) -> np.ndarray:
+        """Lower edge of every bin, in milliseconds."""
+        return _LOG_MIN_NS * 10 ** (np.arange(len(self.counts)) / _BINS_PER_DECADE) / 1e6
+
+    def percentile(self, q: float) -> float | None:
+        """The q-th percentile in milliseconds (upper edge of its bin, capped at the max)."""
+        if self.n == 0:
+            return None
+        b = int(np.searchsorted(np.cumsum(self.counts), q / 100 * self.n))
+        upper = _LOG_MIN_NS * 10 ** ((b + 1) / _BINS_PER_DECADE) / 1e6
+        return round(min(upper, self.max_ns / 1e6), 4)
+
+    def summary(self) -> dict[str, Any]:
+        """Count, p50/p90/p99 and max in ms, and the non-empty bins (for plots)."""
+        nz = np.flatnonzero(self.counts)
+        return {
+            "count": self.n,
+            "p50_ms": self.percentile(50),
+            "p90_ms": self.percentile(90),
+            "p99_ms": self.percentile(99),
+            "max_ms": round(self.max_ns / 1e6, 4) if self.n else None,
+            "bins_ms": [round(float(v), 5) for v in self.edges_ms()[nz]],
+            "bin_counts": self.counts[nz].tolist(),
+        }
+
+
+def resident_mb() -> float:
+    """This process's resident memory now (Linux /proc; 0 where unavailable)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0.0
+    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
+
+
+class Telemetry:
+    """Collects frames and steps; writes JSON lines; prints the live line; builds the report."""
+
+    def __init__(
+        self,
+        jsonl: str | Path | None = None,
+        *,
+        live: bool = True,
+        stream: IO[str] | None = None,
+        live_period_s: float = 1.0,
+    ) -> None:
+        self.spans = {name: Histogram() for name in SPANS}
+        self.recent = {name: deque(maxlen=400) for name in SPANS}
+        self.counts: Counter[str] = Counter()
+        self.per_car: dict[int, Counter[str]] = {}
+        self.episodes: list[dict[str, Any]] = []
+        self.started_ns = time.monotonic_ns()
+        self.memory_start_mb = resident_mb()
+        self.cars = 0
+        self._file = open(jsonl, "w", encoding="utf-8") if jsonl else None  # noqa: SIM115
+        self._live = live
+        self._stream = stream or sys.stdout
+        self._tty = self._stream.isatty()
+        self._period_ns = int(live_period_s * 1e9)
+        self._next_live_ns = self.started_ns + self._period_ns
+        self._steps_at_live = 0
+
+    def _span(self, name: str, ns: int | None) -> None:
+        if ns is not None and ns >= 0:
+            self.spans[name].add(ns)
+            self.recent[name].append(ns)
+
+    def _write(self, record: dict[str, Any]) -> None:
+        if self._file is not None:
+            self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
+
+    def frame(self, index: int, captured_ns: int, state_ns: int, seen: int, dropped: int) -> None:
+        """A frame was turned into cells (``state_ns``: when they were known)."""
+        self.counts["frames"] += 1
+        self.counts["frames_dropped"] = dropped
+        self._span("frame_to_state", state_ns - captured_ns)
+        self._write(
+            {
+                "kind": "frame",
+                "index": index,
+                "t_ns": captured_ns,
+                "frame_to_state_ns": state_ns - captured_ns,
+                "seen": seen,
+            }
+        )
+
+    def step(self, record: dict[str, Any]) -> None:
+        """One decision step: spans and counts from the runtime and the dispatcher."""
+        self.counts["steps"] += 1
+        self.cars = record["cars"]
+        for key in (
+            "on_time", "retried", "missed", "not_ready", "late_sends", "blocked", "stopped"
+        ):  # fmt: skip
+            self.counts[key] += record.get(key, 0)
+        for car, outcome in record.get("outcomes", {}).items():
+            self.per_car.setdefault(int(car), Counter())[outcome] += 1
+        for name in SPANS[1:]:
+            self._span(name, record.get(f"{name}_ns"))
+        self._write({"kind": "step", **record})
+        self._maybe_live(record.get("t_ns", time.monotonic_ns()))
+
+    def event(self, kind: str, **fields: Any) -> None:
+        """A fleet or camera event (join, leave, stall, estop, episode)."""
+        self.counts[kind] += 1
+        self._write({"kind": kind, "t_ns": time.monotonic_ns(), **fields})
+
+    def episode(self, record: dict[str, Any]) -> None:
+        """An episode finished (HIL/--sim): its returns per car."""
+        self.episodes.append(record)
+        self._write({"kind": "episode", **record})
+
+    def _p99(self, name: str) -> str:
+        values = self.recent[name]
+        return f"{np.percentile(values, 99) / 1e6:.2f}" if values else "-"
+
+    def live_line(self, now_ns: int) -> str:
+        """cars, steps/s since the last line, p99 of each span (recent), misses so far."""
+        elapsed = max(now_ns - (self._next_live_ns - self._period_ns), 1)
+        rate = (self.counts["steps"] - self._steps_at_live) * 1e9 / elapsed
+        return (
+            f"cars {self.cars} | steps {self.counts['steps']} ({rate:.1f}/s) | p99 ms: "
+            f"frame→state {self._p99('frame_to_state')}, "
+            f"state→cmds {self._p99('state_to_commands')}, "
+            f"cmds→received {self._p99('commands_to_received')} | "
+            f"on time {self.counts['on_time']}, missed {self.counts['missed']}, "
+            f"late {self.counts['late_sends']} | dropped frames {self.counts['frames_dropped']}"
+        )
+
+    def _maybe_live(self, now_ns: int) -> None:
+        if not self._live or now_ns < self._next_live_ns:
+            return
+        line = self.live_line(now_ns)
+        self._stream.write(("\r\x1b[K" + line) if self._tty else line + "\n")
+        self._stream.flush()
+        self._next_live_ns = now_ns + self._period_ns
+        self._steps_at_live = self.counts["steps"]
+
+    def report(self) -> dict[str, Any]:
+        """Everything at exit: counts, span summaries, per-car outcomes, episodes, memory."""
+        duration = (time.monotonic_ns() - self.started_ns) / 1e9
+        commands = self.counts["on_time"] + self.counts["missed"]
+        return {
+            "duration_s": round(duration, 2),
+            "counts": dict(self.counts),
+            "on_time_share": round(self.counts["on_time"] / commands, 6) if commands else None,
+            "steps_per_s": round(self.counts["steps"] / duration, 2) if duration else None,
+            "spans": {name: h.summary() for name, h in self.spans.items()},
+            "per_car": {str(c): dict(v) for c, v in sorted(self.per_car.items())},
+            "episodes": self.episodes,
+            "memory_mb": {"start": self.memory_start_mb, "end": resident_mb()},
+        }
+
+    def close(self) -> None:
+        """End the live line and close the telemetry file."""
+        if self._live and self._tty:
+            self._stream.write("\n")
+        if self._file is not None:
+            self._file.close()
+            self._file = None

@@ -1,0 +1,344 @@
+"""``udan-hil run``: the closed loop, every part its own process, and what it measured.
+
+    udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
+        --model models/find_water/policy.onnx [--faults loss=0.1,jitter=3ms] --report out/hil
+
+starts the HIL world (``python -m hil.world``: simulated arena, mock cars on loopback UDP, the
+virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
+episodes (``--episodes`` per cell of cars x obstacles, or random ones for ``--duration``
+seconds), applies the fault spec (:mod:`hil.faults`) through the world's control port, then
+stops both and writes the report (:mod:`hil.report`): the edge's spans and deadline counts, the
+cars' own counters, the world's collisions, and the score table through the full loop beside
+the pure simulation of the same policy on the same layouts.
+
+Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
+parse, a missing model) is one line on stderr and exit code 2, and every process the harness
+started is stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import random
+import secrets
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+
+from edge import protocol as ep
+from edge.runtime import world_request
+from export.runtime import OnnxPolicy
+from hil.faults import FaultPlan, FaultSpecError, parse_faults
+from hil.world import Episode, episode_arena
+from udan.envs.errors import EnvConfigError, parse_range
+
+PROG = "udan-hil"
+TASKS = ("find_water",)
+MARKER_BASE = 10
+
+
+class HarnessError(RuntimeError):
+    """The loop could not be run; one line."""
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        print(f"{PROG}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run the closed loop and write the report")
+    run.add_argument("--task", default="find_water", help=f"one of {', '.join(TASKS)}")
+    run.add_argument("--cars", default="5", help="cars per episode, a number or a range 1-5")
+    run.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
+    run.add_argument("--episodes", type=int, help="episodes per (cars, obstacles) cell")
+    run.add_argument("--duration", type=float, help="instead: random episodes for this long (s)")
+    run.add_argument("--episode-steps", type=int, default=50)
+    run.add_argument("--model", type=Path, default=Path("models/find_water/policy.onnx"))
+    run.add_argument("--faults", default="", help="e.g. loss=0.1,jitter=3ms,reboot=car2@10s")
+    run.add_argument("--report", type=Path, default=Path("out/hil"), help="report folder")
+    run.add_argument("--seed", type=int, default=0)
+    run.add_argument("--cell-time-ms", type=float, default=200.0)
+    run.add_argument("--fps", type=float, default=40.0)
+    run.add_argument("--video", action="store_true", help="record the camera (run.mp4)")
+    run.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
+    run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
+    run.add_argument("--timeout", type=float, help="give up after this long (s)")
+    return p
+
+
+def _fleet_file(folder: Path, cars: int) -> Path:
+    """Mock cars 1..cars with fresh keys; no ports (bound freely, learnt from their JOINs)."""
+    lines = []
+    for car in range(1, cars + 1):
+        lines += ["[[car]]", f"id = {car}", f"marker = {MARKER_BASE + car}"]
+        lines += [f'key = "{secrets.token_hex(32)}"', ""]
+    path = folder / "fleet.toml"
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def forged_datagrams(count: int, car_ids: Sequence[int], seed: int) -> list[tuple[int, bytes]]:
+    """``count`` hostile datagrams, each for the edge (0) or a car: random bytes, well-formed
+    frames signed with a wrong key, and truncated frames. None may ever be acted on."""
+    rng = random.Random(seed)
+    out = []
+    for i in range(count):
+        car = rng.choice(list(car_ids))
+        key = rng.randbytes(32)
+        session, seq, ts = rng.getrandbits(31) + 1, rng.getrandbits(20) + 1, rng.getrandbits(40)
+        if i % 3 == 0:
+            out.append((rng.choice([0, car]), rng.randbytes(rng.randint(1, 80))))
+        elif i % 3 == 1:
+            fields = {"action": rng.randrange(5), "deadline_us": ts + 5000}
+            frame = ep.encode(ep.MsgType.COMMAND, car, session, seq, ts, key, fields)
+            out.append((car, frame))
+        else:
+            fields = {
+                "row": 1,
+                "col": 1,
+                "battery_mv": 8000,
+                "faults": 0,
+                "state": 0,
+                "done_seq": 0,
+            }
+            frame = ep.encode(ep.MsgType.STATUS, car, session, seq, ts, key, fields)
+            out.append((0, frame[: rng.randint(1, len(frame))] if i % 2 else frame))
+    return out
+
+
+def simulate(task: str, model: Path, episodes: Sequence[Episode], steps: int) -> list[float]:
+    """Pure-simulation scores (average agent return) of the same policy on the same layouts."""
+    policy = OnnxPolicy(model)
+    scores = []
+    for episode in episodes:
+        arena = episode_arena(task, episode)
+        policy.reset(arena.slots)
+        fresh = np.ones(arena.slots, bool)
+        for _ in range(steps):
+            obs = arena.observe()[0]
+            actions = policy.act(obs, arena.present[0], arena.pos[0], fresh)
+            fresh[:] = False
+            arena.step(actions[None])
+        scores.append(float(arena.episode_return[0][arena.present[0]].mean()))
+    return scores
+
+
+class Loop:
+    """The processes of one run, started and always stopped."""
+
+    def __init__(self, args: argparse.Namespace, folder: Path, faults: FaultPlan) -> None:
+        self.args = args
+        self.folder = folder
+        self.faults = faults
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.tmp = Path(tempfile.mkdtemp(prefix="udan-hil-"))
+        self.cars = parse_range(args.cars, "cars")
+        self.fleet = _fleet_file(self.tmp, self.cars[1])
+        self.camera = f"udan-hil-{os.getpid()}"
+        self.edge_port = _free_port()
+        self.events_done: list[dict[str, Any]] = []
+        self.car_addresses: dict[int, tuple[str, int]] = {}
+
+    def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        log = open(self.folder / f"{name}.log", "w", encoding="utf-8")  # noqa: SIM115
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=log, text=True, start_new_session=True
+        )
+        self.procs[name] = proc
+        return proc
+
+    def start_world(self) -> int:
+        a = self.args
+        cmd = [
+            sys.executable, "-m", "hil.world", "--fleet", str(self.fleet),
+            "--edge", f"127.0.0.1:{self.edge_port}", "--camera-name", self.camera,
+            "--agents", f"{self.cars[0]}-{self.cars[1]}", "--obstacles", a.obstacles,
+            "--seed", str(a.seed), "--cell-time-ms", str(a.cell_time_ms), "--fps", str(a.fps),
+            "--tilt", str(a.tilt), "--noise", str(a.noise),
+        ]  # fmt: skip
+        if a.episodes is not None:
+            cmd += ["--episodes-per-cell", str(a.episodes)]
+        if a.video:
+            cmd += ["--video", str(self.folder / "run.mp4")]
+        proc = self._spawn("world", cmd)
+        line = proc.stdout.readline() if proc.stdout else ""
+        try:
+            ready = json.loads(line)
+            self.car_addresses = {c["id"]: tuple(c["address"]) for c in ready["cars"]}
+            return int(ready["control_port"])
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise HarnessError(
+                f"the HIL world did not start; see {self.folder / 'world.log'}"
+            ) from None
+
+    def start_edge(self, control_port: int) -> subprocess.Popen:
+        a = self.args
+        edge = Path(sys.executable).with_name("udan-edge")
+        cmd = [
+            str(edge), "--camera", f"virtual://{self.camera}", "--model", str(a.model),
+            "--fleet", str(self.fleet), "--listen", f"127.0.0.1:{self.edge_port}",
+            "--world", f"127.0.0.1:{control_port}", "--episode-steps", str(a.episode_steps),
+            "--report", str(self.folder / "edge.json"),
+            "--telemetry", str(self.folder / "telemetry.jsonl"), "--quiet",
+        ]  # fmt: skip
+        if a.duration is not None:
+            cmd += ["--duration", str(a.duration)]
+        return self._spawn("edge", cmd)
+
+    async def apply_faults(self, control: tuple[str, int]) -> None:
+        """Network faults on every car now, then the timed events as their time comes."""
+        if self.faults.network:
+            for car in range(1, self.cars[1] + 1):
+                await world_request(
+                    control, {"op": "faults", "car": car, "set": self.faults.network}
+                )
+        start = time.monotonic()
+        for event in sorted(self.faults.events, key=lambda e: e.at_s):
+            await asyncio.sleep(max(0.0, start + event.at_s - time.monotonic()))
+            if self.procs["edge"].poll() is not None:
+                return
+            now_ns = time.monotonic_ns()
+            if event.kind == "forge":
+                sent = self.forge(event.count or 0)
+                self.events_done.append(
+                    {"kind": "forge", "at_s": event.at_s, "t_ns": now_ns, **sent}
+                )
+                continue
+            request: dict[str, Any] = {"op": event.kind}
+            if event.car is not None:
+                request["car"] = event.car
+            if event.kind == "stall":
+                request["seconds"] = event.seconds
+            answer = await world_request(control, request)
+            answer.pop("ok", None)
+            self.events_done.append(
+                {"kind": event.kind, "at_s": event.at_s, "t_ns": now_ns, **answer}
+            )
+
+    def forge(self, count: int) -> dict[str, int]:
+        """Send forged datagrams from a socket of our own to the edge and the cars; how many
+        went to each side."""
+        import socket
+
+        targets = {0: ("127.0.0.1", self.edge_port), **self.car_addresses}
+        sent = {"to_edge": 0, "to_cars": 0}
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            for target, data in forged_datagrams(count, sorted(self.car_addresses), self.args.seed):
+                sock.sendto(data, targets[target])
+                sent["to_edge" if target == 0 else "to_cars"] += 1
+        return sent
+
+    def stop(self) -> dict[str, str]:
+        """SIGTERM every process still running (SIGKILL after a grace period); their exits."""
+        exits = {}
+        for name, proc in self.procs.items():
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            exits[name] = proc.returncode
+        return exits
+
+
+async def run_loop(args: argparse.Namespace, folder: Path, faults: FaultPlan) -> dict[str, Any]:
+    """Start world and edge, apply faults, wait for the edge to finish, stop all, collect."""
+    loop = Loop(args, folder, faults)
+    world_summary: dict[str, Any] | None = None
+    try:
+        control = ("127.0.0.1", loop.start_world())
+        edge = loop.start_edge(control[1])
+        injector = asyncio.ensure_future(loop.apply_faults(control))
+        deadline = None if args.timeout is None else time.monotonic() + args.timeout
+        while edge.poll() is None:
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            if injector.done() and injector.exception() is not None:
+                raise HarnessError(f"fault injection failed: {injector.exception()}")
+            await asyncio.sleep(0.2)
+        injector.cancel()
+        with contextlib.suppress(Exception):
+            world_summary = {"state": await world_request(control, {"op": "state"})}
+    finally:
+        exits = loop.stop()
+        world_out = loop.procs.get("world")
+        if world_out is not None and world_out.stdout is not None:
+            for line in world_out.stdout.read().splitlines()[::-1]:
+                with contextlib.suppress(json.JSONDecodeError):
+                    world_summary = {**(world_summary or {}), **json.loads(line)}
+                    break
+    edge_report_path = folder / "edge.json"
+    if not edge_report_path.is_file():
+        raise HarnessError(f"udan-edge wrote no report (exit {exits.get('edge')}); see edge.log")
+    return {
+        "edge": json.loads(edge_report_path.read_text()),
+        "world": world_summary or {},
+        "exits": exits,
+        "events": loop.events_done,
+    }
+
+
+def _check(args: argparse.Namespace) -> FaultPlan:
+    if args.task not in TASKS:
+        raise HarnessError(f"unknown task {args.task!r}; the HIL world plays {', '.join(TASKS)}")
+    cars = parse_range(args.cars, "cars")
+    parse_range(args.obstacles, "obstacles")
+    if not 1 <= cars[0] <= cars[1] <= 5:
+        raise HarnessError(f"--cars {args.cars}: the arena plays 1-5 cars")
+    if (args.episodes is None) == (args.duration is None):
+        raise HarnessError("give exactly one of --episodes (per cell) or --duration")
+    if not args.model.is_file():
+        raise HarnessError(f"model {args.model}: no such file")
+    faults = parse_faults(args.faults)
+    try:
+        args.report.mkdir(parents=True, exist_ok=True)
+        probe = args.report / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise HarnessError(f"report folder {args.report}: {err.strerror or err}") from None
+    return faults
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: 0 when the run completed (the report says how well), 2 on bad input."""
+    args = _parser().parse_args(argv)
+    try:
+        faults = _check(args)
+        result = asyncio.run(run_loop(args, args.report, faults))
+    except (HarnessError, FaultSpecError, EnvConfigError) as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    from hil.report import write_report
+
+    episodes = [Episode(e["agents"], e["obstacles"], e["seed"]) for e in result["edge"]["episodes"]]
+    sim = simulate(args.task, args.model, episodes, args.episode_steps)
+    summary = write_report(args, result, sim, args.report)
+    print(json.dumps(summary["headline"], indent=1))
+    return 0

@@ -1,0 +1,200 @@
+"""The HIL report: ``summary.json`` plus PNGs, from what the edge, the cars and the world counted.
+
+- ``latency.png``: histograms of the timing model's spans (edge telemetry);
+- ``misses.png``: commands per car that missed their deadline (and were retried);
+- ``scores.png``: the paper-style table (cars x obstacles, average agent score) through the full
+  loop beside the pure simulation of the same policy on the same layouts, and their gap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SPAN_TITLES = {
+    "frame_to_state": "frame → state",
+    "state_to_commands": "state → commands",
+    "commands_to_received": "commands → received by car",
+    "decision_to_acked": "decision → all acked",
+}
+
+
+def score_table(
+    episodes: list[dict[str, Any]], sim: list[float]
+) -> tuple[list[dict[str, Any]], dict[str, float | None]]:
+    """Per (cars, obstacles) cell: episodes, HIL mean, sim mean; and the overall means and gap.
+
+    The gap is (sim - HIL) / sim of the means over every episode both played."""
+    cells: dict[tuple[int, int], list[tuple[float, float]]] = defaultdict(list)
+    for episode, sim_score in zip(episodes, sim, strict=True):
+        if episode.get("score") is not None:
+            cells[(episode["agents"], episode["obstacles"])].append((episode["score"], sim_score))
+    rows = []
+    for (agents, obstacles), pairs in sorted(cells.items()):
+        hil, ref = np.array(pairs).T
+        rows.append(
+            {
+                "agents": agents,
+                "obstacles": obstacles,
+                "episodes": len(pairs),
+                "hil": round(float(hil.mean()), 3),
+                "sim": round(float(ref.mean()), 3),
+            }
+        )
+    pairs = [p for v in cells.values() for p in v]
+    if not pairs:
+        return rows, {"hil": None, "sim": None, "gap": None}
+    hil, ref = np.array(pairs).T
+    gap = (ref.mean() - hil.mean()) / ref.mean() if ref.mean() else None
+    return rows, {
+        "hil": round(float(hil.mean()), 3),
+        "sim": round(float(ref.mean()), 3),
+        "gap": None if gap is None else round(float(gap), 5),
+        "episodes": len(pairs),
+        "identical_episodes": int(np.sum(np.isclose(hil, ref))),
+    }
+
+
+def _car_totals(cars: dict[str, dict[str, Any]]) -> dict[str, int]:
+    """Counters summed over cars (rejections by reason flattened as rejected_REASON)."""
+    totals: dict[str, int] = defaultdict(int)
+    for counters in cars.values():
+        for key, value in counters.items():
+            if isinstance(value, bool) or value is None:
+                continue
+            if isinstance(value, int | float):
+                totals[key] += int(value)
+            elif isinstance(value, dict):
+                for sub, v in value.items():
+                    if isinstance(v, int | float) and not isinstance(v, bool):
+                        totals[f"{key}_{sub}"] += int(v)
+    return dict(totals)
+
+
+def _plot_latency(edge: dict[str, Any], path: Path) -> None:
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    spans = edge["spans"]
+    fig, axes = plt.subplots(1, len(SPAN_TITLES), figsize=(4.2 * len(SPAN_TITLES), 3.2))
+    for ax, (name, title) in zip(axes, SPAN_TITLES.items(), strict=True):
+        s = spans.get(name, {})
+        if s.get("count"):
+            ax.bar(s["bins_ms"], s["bin_counts"], width=np.array(s["bins_ms"]) * 0.036)
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.axvline(s["p99_ms"], color="tab:red", lw=1, label=f"p99 {s['p99_ms']:.2f} ms")
+            ax.legend(fontsize=8)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("ms")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_misses(edge: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per_car = edge.get("per_car", {})
+    cars = sorted(per_car, key=int)
+    fig, ax = plt.subplots(figsize=(5, 3))
+    on_time = [per_car[c].get("on_time", 0) for c in cars]
+    missed = [per_car[c].get("missed", 0) for c in cars]
+    x = np.arange(len(cars))
+    ax.bar(x - 0.2, missed, 0.4, label="missed", color="tab:red")
+    ax2 = ax.twinx()
+    ax2.bar(x + 0.2, on_time, 0.4, label="on time", color="tab:green", alpha=0.5)
+    ax.set_xticks(x, [f"car {c}" for c in cars])
+    ax.set_ylabel("commands missed")
+    ax2.set_ylabel("commands on time")
+    ax.set_title("dispatch deadline per car")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_scores(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    agents = sorted({r["agents"] for r in rows})
+    obstacles = sorted({r["obstacles"] for r in rows})
+    grids = {k: np.full((len(obstacles), len(agents)), np.nan) for k in ("hil", "sim")}
+    for r in rows:
+        for k in grids:
+            grids[k][obstacles.index(r["obstacles"]), agents.index(r["agents"])] = r[k]
+    gap = grids["sim"] - grids["hil"]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 0.45 * len(obstacles) + 2.2))
+    panels = (
+        ("full loop (HIL)", grids["hil"]),
+        ("pure simulation", grids["sim"]),
+        ("sim − HIL", gap),
+    )
+    for ax, (title, grid) in zip(axes, panels, strict=True):
+        ax.imshow(grid, cmap="viridis" if "−" not in title else "coolwarm", aspect="auto")
+        for (i, j), v in np.ndenumerate(grid):
+            if not np.isnan(v):
+                ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7, color="w")
+        ax.set_xticks(range(len(agents)), agents)
+        ax.set_yticks(range(len(obstacles)), obstacles)
+        ax.set_xlabel("cars")
+        ax.set_ylabel("obstacles")
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(
+    args: argparse.Namespace, result: dict[str, Any], sim: list[float], folder: Path
+) -> dict[str, Any]:
+    """Write summary.json and the PNGs into ``folder``; returns the summary."""
+    edge, world = result["edge"], result["world"]
+    rows, scores = score_table(edge["episodes"], sim)
+    cars = _car_totals(world.get("cars", {}))
+    counts = edge["counts"]
+    headline = {
+        "episodes": len(edge["episodes"]),
+        "score_hil": scores["hil"],
+        "score_sim": scores["sim"],
+        "sim_to_hil_gap": scores["gap"],
+        "steps": counts.get("steps", 0),
+        "commands_on_time_share": edge.get("on_time_share"),
+        "commands_missed": counts.get("missed", 0),
+        "late_sends": counts.get("late_sends", 0),
+        "late_executions": edge.get("link", {}).get("late_received", 0),
+        "collisions": world.get("world", {}).get("collisions"),
+        "p99_ms": {name: edge["spans"][name]["p99_ms"] for name in SPAN_TITLES},
+        "edge_memory_mb": edge.get("memory_mb"),
+        "exits": result["exits"],
+    }
+    summary = {
+        "headline": headline,
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "scores": {"overall": scores, "cells": rows},
+        "edge": {k: v for k, v in edge.items() if k != "episodes"},
+        "episodes": [{**e, "sim_score": s} for e, s in zip(edge["episodes"], sim, strict=True)],
+        "cars": cars,
+        "world": world,
+        "events": result["events"],
+    }
+    (folder / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    _plot_latency(edge, folder / "latency.png")
+    _plot_misses(edge, folder / "misses.png")
+    if rows:
+        _plot_scores(rows, folder / "scores.png")
+    return summary

@@ -1,0 +1,428 @@
+"""The simulated arena the mock cars drive in, seen by the virtual camera: ``python -m hil.world``.
+
+One process holds the world, every mock car of the fleet (each a real UDP socket, ESP8266 mock,
+pty serial line and motor controller: ``firmware_mock.udp.MockCar``) and the virtual camera,
+which renders the world at 40 FPS from its own thread into shared memory (``virtual://NAME``).
+The edge runs as a separate process and sees none of this except camera frames and UDP.
+
+Where moves end is decided here (``HilWorld``, the firmware's ``World``): a car's move ends on
+the next cell unless that cell is off the grid, an obstacle, or held by a car that is not itself
+leaving it, which is what the arena's rules say for moves the edge's safety filter let through.
+A car that arrives while the car it follows has its move cut (stop, watchdog) is a collision,
+and counted: the edge must never cause one.
+
+Episodes come from the same code as the simulation: episode ``i`` of the plan is the arena
+``ArenaBatch(agents=n, obstacles=m, seed=s)`` lays out, its first ``n`` cars of the fleet placed
+on its start cells (the others parked off the arena, unseen), so the full loop and the pure
+simulation play the very same layouts. A loopback JSON control port (not the car protocol)
+serves the edge's episode requests and the harness's faults, like the mock firmware's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import itertools
+import json
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+
+from edge.geometry import ArenaGeometry
+from firmware_mock.firmware import CarTiming
+from firmware_mock.fleet import FleetError, load_fleet
+from firmware_mock.udp import MockCar
+from hil.render import CameraModel, Renderer
+from hil.vcam import VirtualCamera
+from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.errors import EnvConfigError, parse_range
+from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
+
+PROG = "hil-world"
+Cell = tuple[int, int]
+_KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One planned episode: how many cars and obstacles, and the layout seed."""
+
+    agents: int
+    obstacles: int
+    seed: int
+
+
+def plan(
+    agents: tuple[int, int],
+    obstacles: tuple[int, int],
+    seed: int,
+    per_cell: int | None = None,
+) -> Iterator[Episode]:
+    """Episodes: ``per_cell`` of every (agents, obstacles) cell in turn, or random ones forever.
+    Episode ``i`` has layout seed ``seed + i`` either way."""
+    if per_cell is not None:
+        cells = itertools.product(
+            range(obstacles[0], obstacles[1] + 1), range(agents[0], agents[1] + 1)
+        )
+        for i, ((m, n), _) in enumerate(itertools.product(cells, range(per_cell))):
+            yield Episode(n, m, seed + i)
+        return
+    rng = np.random.default_rng(seed)
+    for i in itertools.count():
+        n = int(rng.integers(agents[0], agents[1] + 1))
+        m = int(rng.integers(obstacles[0], obstacles[1] + 1))
+        yield Episode(n, m, seed + i)
+
+
+def episode_arena(task: str, episode: Episode) -> ArenaBatch:
+    """The simulated arena of ``episode`` after its reset: layout and start cells."""
+    config = ArenaConfig(
+        task=task,
+        agents=(episode.agents, episode.agents),
+        obstacles=(episode.obstacles, episode.obstacles),
+    )
+    arena = ArenaBatch(config, 1, seed=episode.seed)
+    arena.reset()
+    return arena
+
+
+class HilWorld:
+    """Where every car is, where moves end, and what the camera sees (thread-safe snapshot)."""
+
+    def __init__(self, geometry: ArenaGeometry, markers: dict[int, int], cell_time_s: float):
+        self.geometry = geometry
+        self.markers = markers
+        self.cell_time_ns = int(cell_time_s * 1e9)
+        self.layout = np.zeros((geometry.rows, geometry.cols), np.uint8)
+        self.pose: dict[int, Cell] = {}
+        self.motion: dict[int, tuple[Cell, Cell, int]] = {}
+        self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0}
+        self._lock = threading.Lock()
+
+    # -- the firmware's World --------------------------------------------------------------
+    def begin(self, car_id: int, pose: Cell, action: int) -> None:
+        """A car in the arena started a move: remember where from and to (and when)."""
+        with self._lock:
+            if car_id in self.pose:
+                cur = self.pose[car_id]
+                dest = (
+                    cur[0] + int(ACTION_DELTAS[action][0]),
+                    cur[1] + int(ACTION_DELTAS[action][1]),
+                )
+                self.motion[car_id] = (cur, dest, time.monotonic_ns())
+
+    def abort(self, car_id: int) -> None:
+        """A move was cut: the car stays; a follower already on its cell is a collision."""
+        with self._lock:
+            if self.motion.pop(car_id, None) is not None:
+                self.counts["aborted"] += 1
+                here = self.pose.get(car_id)
+                if any(c != car_id and p == here for c, p in self.pose.items()):
+                    self.counts["collisions"] += 1
+
+    def move(self, car_id: int, pose: Cell, action: int) -> Cell:
+        """Where a finished move ends (a car off the arena goes nowhere)."""
+        with self._lock:
+            self.motion.pop(car_id, None)
+            if car_id not in self.pose:
+                return pose
+            cur = self.pose[car_id]
+            d = ACTION_DELTAS[action]
+            dest = (cur[0] + int(d[0]), cur[1] + int(d[1]))
+            inside = 0 <= dest[0] < self.geometry.rows and 0 <= dest[1] < self.geometry.cols
+            held = any(
+                c != car_id and p == dest and not (c in self.motion and self.motion[c][0] == dest)
+                for c, p in self.pose.items()
+            )
+            if inside and self.layout[dest] == FREE and not held:
+                self.pose[car_id] = dest
+                self.counts["moves"] += 1
+            else:
+                self.counts["blocked"] += 1
+            return self.pose[car_id]
+
+    # -- episodes and the harness ----------------------------------------------------------
+    def place(self, layout: np.ndarray, cells: dict[int, Cell]) -> None:
+        """A new layout with these cars on these cells; every other car is parked (unseen)."""
+        with self._lock:
+            self.layout = layout.copy()
+            self.pose = dict(cells)
+            self.motion.clear()
+
+    def remove(self, car_id: int) -> None:
+        """Take a car off the arena (it leaves the camera's view)."""
+        with self._lock:
+            self.pose.pop(car_id, None)
+            self.motion.pop(car_id, None)
+
+    def add(self, car_id: int, cell: Cell | None = None) -> Cell:
+        """Put a car on ``cell`` (default: the free start cell nearest the bottom-right)."""
+        with self._lock:
+            taken = set(self.pose.values())
+            if cell is None:
+                free = [
+                    (r, c)
+                    for r in range(self.geometry.rows - 1, -1, -1)
+                    for c in range(self.geometry.cols - 1, -1, -1)
+                    if self.layout[r, c] == FREE and (r, c) not in taken
+                ]
+                cell = free[0]
+            if self.layout[cell] != FREE or cell in taken:
+                raise ValueError(f"cell {cell} is not free")
+            self.pose[car_id] = cell
+            return cell
+
+    # -- what the camera sees ----------------------------------------------------------------
+    def snapshot(self, now_ns: int) -> tuple[list[tuple[int, float, float, float]], dict]:
+        """Cars as (marker, x, y, heading) with moves in progress interpolated, and the static
+        cells by kind, at ``now_ns``."""
+        with self._lock:
+            cars = []
+            for car, cell in self.pose.items():
+                x, y = self.geometry.cell_centre(*cell)
+                if car in self.motion:
+                    (r0, c0), (r1, c1), t0 = self.motion[car]
+                    f = min(max((now_ns - t0) / self.cell_time_ns, 0.0), 1.0)
+                    x0, y0 = self.geometry.cell_centre(r0, c0)
+                    x1, y1 = self.geometry.cell_centre(r1, c1)
+                    x, y = x0 + f * (x1 - x0), y0 + f * (y1 - y0)
+                cars.append((self.markers[car], x, y, 0.0))
+            cells = {
+                kind: [tuple(rc) for rc in np.argwhere(self.layout == code).tolist()]
+                for kind, code in _KINDS.items()
+            }
+        return cars, cells
+
+    def state(self) -> dict[str, Any]:
+        """Truth for the harness: every car's cell, moves in progress, counts."""
+        with self._lock:
+            return {
+                "pose": {str(c): list(p) for c, p in self.pose.items()},
+                "moving": sorted(self.motion),
+                "counts": dict(self.counts),
+            }
+
+
+class CameraThread(threading.Thread):
+    """Renders the world at the camera's rate and publishes it, off the cars' event loop."""
+
+    def __init__(self, world: HilWorld, renderer: Renderer, camera: VirtualCamera) -> None:
+        super().__init__(name="virtual-camera", daemon=True)
+        self.world = world
+        self.renderer = renderer
+        self.camera = camera
+        self.render_ns: deque[int] = deque(maxlen=20_000)
+        self._halt = threading.Event()
+
+    def _render(self, t_ns: int) -> np.ndarray:
+        cars, cells = self.world.snapshot(t_ns)
+        image = self.renderer.render(cars, cells)
+        self.render_ns.append(time.monotonic_ns() - t_ns)
+        return image
+
+    def run(self) -> None:
+        self.camera.run(self._render, stop=self._halt)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(timeout=2)
+
+
+class _Control(asyncio.DatagramProtocol):
+    """Loopback JSON control: the edge's episode requests and the harness's faults."""
+
+    def __init__(self, server: WorldServer) -> None:
+        self.server = server
+        self.transport: asyncio.DatagramTransport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        try:
+            reply = {"ok": True, **self.server.handle(json.loads(data))}
+        except (ValueError, KeyError, TypeError) as err:
+            reply = {"ok": False, "error": str(err)}
+        if self.transport is not None:
+            self.transport.sendto(json.dumps(reply).encode(), addr)
+
+
+class WorldServer:
+    """The world process: cars, world, camera, episodes, control."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.specs = load_fleet(args.fleet, base_port=0)
+        self.geometry = ArenaGeometry()
+        markers = {s.car_id: s.marker for s in self.specs}
+        self.world = HilWorld(self.geometry, markers, args.cell_time_ms / 1000)
+        self.episodes = plan(
+            parse_range(args.agents, "agents"),
+            parse_range(args.obstacles, "obstacles"),
+            args.seed,
+            args.episodes_per_cell,
+        )
+        self.episode_index = -1
+        self.cars: dict[int, MockCar] = {}
+
+    def handle(self, request: dict[str, Any]) -> dict[str, Any]:
+        """One control request -> the answer's fields."""
+        op = request["op"]
+        if op == "episode":
+            return self._episode(int(request["index"]))
+        if op == "state":
+            return self.world.state()
+        if op == "counters":
+            return {"cars": {str(c): car.counters() for c, car in self.cars.items()}}
+        if op == "faults":
+            self.cars[int(request["car"])].firmware.apply_faults(request["set"])
+            return {}
+        if op == "reboot":
+            self.cars[int(request["car"])].firmware.reboot()
+            return {}
+        if op == "remove":
+            self.world.remove(int(request["car"]))
+            return {}
+        if op == "add":
+            cell = tuple(request["cell"]) if request.get("cell") else None
+            return {"cell": list(self.world.add(int(request["car"]), cell))}
+        if op == "stall":
+            self.camera.camera.stall(float(request["seconds"]))
+            return {}
+        raise ValueError(f"unknown op {op!r}")
+
+    def _episode(self, index: int) -> dict[str, Any]:
+        """Lay out episode ``index`` (the plan is walked forward only)."""
+        if index <= self.episode_index:
+            raise ValueError(f"episode {index} already played")
+        episode = None
+        while self.episode_index < index:
+            episode = next(self.episodes, None)
+            self.episode_index += 1
+            if episode is None:
+                return {"done": True}
+        assert episode is not None
+        arena = episode_arena(self.args.task, episode)
+        cars = sorted(self.cars)[: episode.agents]
+        if len(cars) < episode.agents:
+            raise ValueError(f"episode needs {episode.agents} cars, the fleet has {len(cars)}")
+        cells = {car: tuple(int(v) for v in arena.pos[0, i]) for i, car in enumerate(cars)}
+        self.world.place(arena.layout[0], cells)
+        return {
+            "cars": cars,
+            "agents": episode.agents,
+            "obstacles": episode.obstacles,
+            "seed": episode.seed,
+        }
+
+    async def run(self) -> dict[str, Any]:
+        """Start everything, print the ready line, serve until SIGTERM; the final counters."""
+        args = self.args
+        loop = asyncio.get_running_loop()
+        edge_host, _, edge_port = args.edge.rpartition(":")
+        timing = CarTiming(cell_time_s=args.cell_time_ms / 1000)
+        for i, spec in enumerate(self.specs):
+            car = MockCar(
+                spec, edge=(edge_host, int(edge_port)), world=self.world, timing=timing,
+                seed=args.seed + i,
+            )  # fmt: skip
+            await car.start()
+            self.cars[spec.car_id] = car
+        model = CameraModel(
+            tilt_deg=args.tilt, k1=args.k1, noise_sigma=args.noise, blur_sigma=args.blur,
+            seed=args.seed,
+        )  # fmt: skip
+        renderer = Renderer(self.geometry, model)
+        vcam = VirtualCamera(
+            args.camera_name, model.width, model.height, video=args.video, fps=args.fps
+        )
+        self.camera = CameraThread(self.world, renderer, vcam)
+        control, _ = await loop.create_datagram_endpoint(
+            lambda: _Control(self), local_addr=("127.0.0.1", args.control_port)
+        )
+        stop = asyncio.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        self.camera.start()
+        ready = {
+            "ready": True,
+            "control_port": control.get_extra_info("sockname")[1],
+            "camera": f"virtual://{args.camera_name}",
+            "cars": [{"id": c, "address": list(car.address or ())} for c, car in self.cars.items()],
+        }
+        print(json.dumps(ready), flush=True)
+        try:
+            await stop.wait()
+        finally:
+            self.camera.stop()
+            vcam.close()
+            counters = {str(c): car.counters() for c, car in self.cars.items()}
+            for car in self.cars.values():
+                car.close()
+            control.close()
+        render = np.asarray(self.camera.render_ns or [0]) / 1e6
+        return {
+            "world": self.world.state()["counts"],
+            "frames": vcam.frames,
+            "frames_faulted": vcam.faulted,
+            "render_ms": {
+                "p50": round(float(np.median(render)), 3),
+                "p99": round(float(np.percentile(render, 99)), 3),
+            },
+            "cars": counters,
+        }
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        print(f"{PROG}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _OneLineParser(prog="python -m hil.world", description=__doc__.split("\n\n")[0])
+    p.add_argument("--fleet", type=Path, required=True, help="fleet.toml of the mock cars")
+    p.add_argument("--edge", required=True, help="the edge's HOST:PORT (cars JOIN there)")
+    p.add_argument("--camera-name", required=True, help="shared-memory name of the camera")
+    p.add_argument("--task", default="find_water", choices=["find_water"])
+    p.add_argument("--agents", default="1-5", help="cars per episode, a range")
+    p.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
+    p.add_argument("--episodes-per-cell", type=int, help="plan every cell in turn (else random)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cell-time-ms", type=float, default=200.0)
+    p.add_argument("--fps", type=float, default=40.0)
+    p.add_argument("--video", type=Path, help="record the camera to this MP4")
+    p.add_argument("--control-port", type=int, default=0)
+    p.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
+    p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")
+    p.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma (grey levels)")
+    p.add_argument("--blur", type=float, default=0.6, help="blur sigma (pixels)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: serve until SIGTERM, then print the final counters as one JSON line."""
+    args = _parser().parse_args(argv)
+    try:
+        server = WorldServer(args)
+        summary = asyncio.run(server.run())
+    except (FleetError, EnvConfigError, ValueError) as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{PROG}: error: {err.strerror or err}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
