@@ -248,6 +248,14 @@ class Runtime:
         report = await self.link.dispatch(commands, decided_ns)
         self.last_command.update(commands)
         received = [r.car_received_ns for r in report.cars.values() if r.acked]
+        # an audit of the car: a command it executed (ACCEPTED, not a duplicate's ack, which
+        # carries the copy's later receive time) must have reached it by its deadline, judged
+        # in the car's own clock (the edge-clock estimate is only good to half a round trip)
+        late = sum(
+            r.car_rx_us > r.car_deadline_us
+            for r in report.cars.values()
+            if r.acked and r.result == "accepted"
+        )
         acked = [r.acked_ns for r in report.cars.values() if r.acked]
         self.telemetry.step(
             {
@@ -267,6 +275,7 @@ class Runtime:
                 "missed": report.missed,
                 "not_ready": report.not_ready,
                 "late_sends": report.late_sends,
+                "late_executions": late,
                 "blocked": decision.blocked,
                 "stopped": decision.stopped,
                 "spans_ns": decision.spans_ns,

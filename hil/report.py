@@ -176,7 +176,7 @@ def write_report(
         "commands_on_time_share": edge.get("on_time_share"),
         "commands_missed": counts.get("missed", 0),
         "late_sends": counts.get("late_sends", 0),
-        "late_executions": edge.get("link", {}).get("late_received", 0),
+        "late_executions": counts.get("late_executions", 0),
         "collisions": world.get("world", {}).get("collisions"),
         "p99_ms": {name: edge["spans"][name]["p99_ms"] for name in SPAN_TITLES},
         "edge_memory_mb": edge.get("memory_mb"),

@@ -288,10 +288,10 @@ class WorldServer:
         if op == "reboot":
             self.cars[int(request["car"])].firmware.reboot()
             return {}
-        if op == "remove":
+        if op == "leave":
             self.world.remove(int(request["car"]))
             return {}
-        if op == "add":
+        if op == "join":
             cell = tuple(request["cell"]) if request.get("cell") else None
             return {"cell": list(self.world.add(int(request["car"]), cell))}
         if op == "stall":

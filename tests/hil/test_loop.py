@@ -1,0 +1,146 @@
+"""The closed loop through real processes: ``udan-hil run`` starts the HIL world (mock cars on
+loopback UDP, virtual camera) and ``udan-edge``; these tests read what both sides counted.
+
+Cars move a cell in 60 ms here (200 ms on the real cars) and episodes are 20 steps, so a run of
+a few episodes takes seconds. Counts are asserted, not timings: the machines are shared.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.hil
+
+UDAN_HIL = str(Path(sys.executable).with_name("udan-hil"))
+FAST = ["--cell-time-ms", "60", "--episode-steps", "20"]
+
+
+def run_hil(folder: Path, *args: str, timeout: float = 240) -> dict[str, Any]:
+    """Run the harness; the summary it wrote (it must exit 0)."""
+    done = subprocess.run(
+        [UDAN_HIL, "run", "--report", str(folder), *FAST, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads((folder / "summary.json").read_text())
+
+
+def telemetry(folder: Path) -> list[dict[str, Any]]:
+    lines = (folder / "telemetry.jsonl").read_text().splitlines()
+    return [json.loads(line) for line in lines]
+
+
+def _assert_safe(summary: dict[str, Any]) -> None:
+    """What must hold under any fault: nothing crashed, nothing late, nobody collided."""
+    head = summary["headline"]
+    assert head["exits"] == {"world": 0, "edge": 0}
+    assert head["late_sends"] == 0
+    assert head["late_executions"] == 0
+    assert head["collisions"] == 0
+
+
+def test_no_faults_every_command_on_time_and_scores_match_the_simulation(
+    tmp_path: Path,
+) -> None:
+    s = run_hil(tmp_path, "--cars", "1-3", "--obstacles", "0-2", "--episodes", "1")
+    _assert_safe(s)
+    head = s["headline"]
+    assert head["episodes"] == 9
+    assert head["commands_on_time_share"] >= 0.995  # 1.0 on a quiet machine
+    assert abs(head["sim_to_hil_gap"]) <= 0.02
+    # the cars refused nothing: no forged, replayed, stale or out-of-session frame reached them
+    rejected = {k: v for k, v in s["cars"].items() if k.startswith("rejected") and v}
+    assert rejected == {}
+    assert s["edge"]["link"]["rejected"] == {}
+    for name in ("latency.png", "misses.png", "scores.png"):
+        assert (tmp_path / name).stat().st_size > 1000
+
+
+def test_forged_and_malformed_datagrams_are_dropped_and_counted(tmp_path: Path) -> None:
+    s = run_hil(
+        tmp_path, "--cars", "2", "--obstacles", "1", "--episodes", "2",
+        "--faults", "forge=120@1s",
+    )  # fmt: skip
+    _assert_safe(s)
+    forge = next(e for e in s["events"] if e["kind"] == "forge")
+    assert forge["to_edge"] > 0 and forge["to_cars"] > 0
+    # every datagram that reached a car was refused there (wrong key, garbage, unknown car)
+    car_rejected = sum(v for k, v in s["cars"].items() if k.startswith("rejected"))
+    assert car_rejected == forge["to_cars"]
+    edge_rejected = sum(s["edge"]["link"]["rejected"].values())
+    assert edge_rejected == forge["to_edge"]
+    assert abs(s["headline"]["sim_to_hil_gap"]) <= 0.02
+
+
+def test_loss_jitter_duplication_reordering_never_late_never_unsafe(tmp_path: Path) -> None:
+    s = run_hil(
+        tmp_path, "--cars", "3", "--obstacles", "0-1", "--episodes", "1",
+        "--faults", "loss=0.3,jitter=3ms,duplicate=0.1,reorder=0.1",
+    )  # fmt: skip
+    _assert_safe(s)
+    head = s["headline"]
+    assert head["commands_missed"] > 0  # 30 % loss each way shows up in the counts
+    assert s["edge"]["counts"]["retried"] > 0
+    assert head["episodes"] == 2
+
+
+@pytest.mark.slow
+def test_reboot_stall_and_fleet_changes_mid_run(tmp_path: Path) -> None:
+    """One long episode (the run ends inside it), with every event in the middle of it."""
+    s = run_hil(
+        tmp_path, "--cars", "3", "--obstacles", "0", "--duration", "16", "--episode-steps", "200",
+        "--faults", "reboot=car2@2s,stall=500ms@5s,leave=car3@8s,join=car3@11s",
+    )  # fmt: skip
+    _assert_safe(s)
+    events = {e["kind"]: e for e in s["events"]}
+    assert set(events) == {"reboot", "stall", "leave", "join"}
+    records = telemetry(tmp_path)
+    steps = np.array([r["t_ns"] for r in records if r["kind"] == "step"])
+    period = np.median(np.diff(steps))
+    # the rebooted car is re-joined (new session, new clock sync) and driven again within
+    # 2 steps; the others are not disturbed
+    after_reboot = [
+        r for r in records
+        if r["kind"] == "step" and events["reboot"]["t_ns"] < r["t_ns"] < events["stall"]["t_ns"]
+    ]  # fmt: skip
+    assert len(after_reboot) > 5
+    disturbed = [r for r in after_reboot if r["outcomes"].get("2") != "on_time"]
+    assert len(disturbed) <= 2
+    assert all(r["outcomes"].get("1") == "on_time" for r in after_reboot[2:])
+    # after the camera stall, the first step comes within 2 step periods of the stall's end
+    stall_end = events["stall"]["t_ns"] + 0.5e9
+    after = steps[steps > stall_end]
+    assert after.size and after[0] - stall_end <= 2 * period + 0.1e9
+    # the leaving car left the fleet, and the joining one came in; the others went on
+    left = [r for r in records if r["kind"] == "fleet_leave" and r["car"] == 3]
+    assert any(r["t_ns"] > events["leave"]["t_ns"] for r in left)
+    gaps = np.diff(steps[(steps > events["leave"]["t_ns"]) & (steps < events["join"]["t_ns"])])
+    assert gaps.size and gaps.max() <= 2 * period + 0.1e9
+    assert s["edge"]["counts"]["camera_stall"] >= 1
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--task", "chess"], "unknown task"),
+        (["--faults", "loss=lots"], "not a probability"),
+        (["--report", "/proc/no/such/folder"], "report folder"),
+        (["--model", "/no/such.onnx"], "no such file"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], message: str) -> None:
+    base = ["--report", str(tmp_path / "r"), "--episodes", "1"]
+    done = subprocess.run(
+        [UDAN_HIL, "run", *base, *args], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and message in done.stderr
