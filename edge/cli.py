@@ -133,11 +133,11 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     geometry = ArenaGeometry()
     _, decide = load_policy(args.model, geometry)
     cars = load_fleet(args.fleet)
+    transport = open_transport(args.transport, cars, **_transport_options(args))
     vision = Vision(
         geometry, car_markers=[c.marker for c in cars], calibration_file=args.calibration
     )
     grabber = FrameGrabber(open_camera(args.camera))
-    transport = open_transport(args.transport, cars, **_transport_options(args))
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(

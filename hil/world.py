@@ -282,6 +282,8 @@ class WorldServer:
             return self.world.state()
         if op == "counters":
             return {"cars": {str(c): car.counters() for c, car in self.cars.items()}}
+        if op == "cars":
+            return {"cars": {str(c): car.state() for c, car in self.cars.items()}}
         if op == "faults":
             self.cars[int(request["car"])].firmware.apply_faults(request["set"])
             return {}

@@ -1,0 +1,137 @@
+"""``udan-edge`` as a user runs it: bad input, and an emergency stop on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
+MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+
+
+def _fleet(folder: Path, cars: int) -> Path:
+    text = "".join(
+        f'[[car]]\nid = {c}\nmarker = {10 + c}\nkey = "{secrets.token_hex(32)}"\n\n'
+        for c in range(1, cars + 1)
+    )
+    path = folder / "fleet.toml"
+    path.write_text(text)
+    return path
+
+
+def _edge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([UDAN_EDGE, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def fleet(tmp_path: Path) -> Path:
+    return _fleet(tmp_path, 2)
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("no_camera", "--camera is required"),
+        ("missing_model", "no such file"),
+        ("corrupt_model", "cannot be loaded by onnxruntime"),
+        ("not_a_policy", "cannot be loaded"),
+        ("missing_device", "/dev/video"),
+        ("bad_fleet", "fleet"),
+        ("unknown_transport", "transport"),
+        ("report_folder", "does not exist"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(
+    tmp_path: Path, fleet: Path, case: str, message: str
+) -> None:
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(MODEL.read_bytes()[: len(MODEL.read_bytes()) // 2])
+    other = tmp_path / "other.onnx"
+    other.write_bytes(b"not a model at all")
+    bad_fleet = tmp_path / "bad.toml"
+    bad_fleet.write_text("[[car]]\nid = 1\n")
+    base = {"--camera": "/dev/video99", "--model": str(MODEL), "--fleet": str(fleet)}
+    change = {
+        "no_camera": {"--camera": None},
+        "missing_model": {"--model": str(tmp_path / "none.onnx")},
+        "corrupt_model": {"--model": str(corrupt)},
+        "not_a_policy": {"--model": str(other)},
+        "missing_device": {},
+        "bad_fleet": {"--fleet": str(bad_fleet)},
+        "unknown_transport": {"--transport": "carrier-pigeon"},
+        "report_folder": {"--report": str(tmp_path / "no" / "such" / "r.json")},
+    }[case]
+    opts = {**base, **change}
+    argv = [x for k, v in opts.items() if v is not None for x in (k, v)]
+    done = _edge(*argv)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1, done.stderr
+    assert message in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ask(port: int, request: dict) -> dict:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(5)
+        s.sendto(json.dumps(request).encode(), ("127.0.0.1", port))
+        return json.loads(s.recv(65536))
+
+
+def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Path) -> None:
+    """World and edge as separate processes; SIGTERM to the edge latches every car's estop."""
+    edge_port, camera = _free_port(), f"udan-test-{time.monotonic_ns()}"
+    world = subprocess.Popen(
+        [
+            sys.executable, "-m", "hil.world", "--fleet", str(fleet),
+            "--edge", f"127.0.0.1:{edge_port}", "--camera-name", camera, "--agents", "2",
+            "--obstacles", "0", "--cell-time-ms", "60",
+        ],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    edge = None
+    try:
+        control = json.loads(world.stdout.readline())["control_port"]
+        edge = subprocess.Popen(
+            [
+                UDAN_EDGE, "--camera", f"virtual://{camera}", "--model", str(MODEL),
+                "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
+                "--world", f"127.0.0.1:{control}", "--quiet",
+                "--report", str(tmp_path / "edge.json"),
+            ],
+            stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            cars = _ask(control, {"op": "cars"})["cars"]
+            if all(c["joined"] for c in cars.values()):
+                break
+            time.sleep(0.2)
+        assert all(c["joined"] for c in cars.values())
+        assert not any(c["estopped"] for c in cars.values())
+        time.sleep(1.0)  # a few steps
+        edge.send_signal(signal.SIGTERM)
+        assert edge.wait(timeout=20) == 0, edge.stderr.read()
+        cars = _ask(control, {"op": "cars"})["cars"]
+        assert all(c["estopped"] for c in cars.values()), cars
+        report = json.loads((tmp_path / "edge.json").read_text())
+        assert report["counts"]["estop"] == 1 and report["counts"]["steps"] > 0
+        assert report["counts"]["late_sends"] == 0
+    finally:
+        for proc in (edge, world):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(timeout=20)
