@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow bench lint clean
+.PHONY: install demo test test-slow hil bench lint clean
 
 install: $(STAMP)
 
@@ -16,14 +16,21 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[train,dev]'
 	touch $(STAMP)
 
+# The edge runtime against the virtual camera and the mock fleet, with the bundled policy.
 demo: $(STAMP)
-	$(VENV)/bin/udan-eval models/find_water/checkpoint.pt --policy oracle --agents 1-5 --obstacles 0-9 --episodes 20
+	@mkdir -p out/demo
+	$(VENV)/bin/udan-edge --sim --cars 5 --duration 30 --report out/demo/report.json \
+	  --telemetry out/demo/telemetry.jsonl --video out/demo/run.mp4
 
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
+
+# The hardware-in-the-loop suite, long cases included (the fast ones also run in `make test`).
+hil: $(STAMP)
+	$(PY) -m pytest -q -m hil
 
 bench: $(STAMP)
 	@mkdir -p out/bench

@@ -276,6 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=1), encoding="utf-8")
+    print(f"{PROG}: {report['final']}" + (f"; report {args.report}" if args.report else ""))
     return 0
 
 

@@ -149,6 +149,7 @@ class Runtime:
             self.grabber.close()
             self._vision_pool.shutdown(wait=True)
         report = self.telemetry.report()
+        report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
         report["camera"] = {"captured": self.grabber.captured, "dropped": self.grabber.dropped}
         return report

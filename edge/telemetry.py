@@ -199,6 +199,23 @@ class Telemetry:
             "memory_mb": {"start": self.memory_start_mb, "end": resident_mb()},
         }
 
+    def final_line(self) -> str:
+        """One line for the end of a run: steps, episodes and their mean score, deadlines."""
+        counts, scores = self.counts, [e["score"] for e in self.episodes if e["score"] is not None]
+        commands = counts["on_time"] + counts["missed"]
+        share = f"{100 * counts['on_time'] / commands:.2f} %" if commands else "-"
+        episodes = (
+            f"{len(scores)} episodes, mean score {sum(scores) / len(scores):.2f}"
+            if scores
+            else "no complete episode"
+        )
+        return (
+            f"{counts['steps']} steps, {episodes}; commands on time {share} "
+            f"({counts['missed']} missed, {counts['late_sends']} sent late, "
+            f"{counts['late_executions']} executed late); memory {self.memory_start_mb} -> "
+            f"{resident_mb()} MB"
+        )
+
     def close(self) -> None:
         """End the live line and close the telemetry file."""
         if self._live and self._tty:

@@ -1,0 +1,260 @@
+"""Camera sources, the frame grabber, and the virtual camera across two real processes."""
+
+import asyncio
+import os
+import subprocess
+import sys
+import textwrap
+import time
+import uuid
+
+import cv2
+import numpy as np
+import pytest
+
+from edge.camera import CameraError, FrameGrabber, open_camera, shm_path
+from hil.vcam import VirtualCamera
+
+
+def write_images(folder, count, shape=(48, 64)):
+    """Colour PNGs whose pixels all equal their number, named so sorting matters."""
+    folder.mkdir(exist_ok=True)
+    for k in range(count):
+        img = np.full((*shape, 3), 10 * k % 256, np.uint8)
+        cv2.imwrite(str(folder / f"img_{k:03d}.png"), img)
+    (folder / "notes.txt").write_text("not an image")
+    return folder
+
+
+def unique_name():
+    return f"udan-test-{uuid.uuid4().hex[:10]}"
+
+
+def one_line_error(url):
+    with pytest.raises(CameraError) as err:
+        open_camera(url)
+    message = str(err.value)
+    assert "\n" not in message and message
+    return message
+
+
+# -- file sources --------------------------------------------------------------------------
+def test_folder_plays_images_in_order_as_grayscale(tmp_path):
+    folder = write_images(tmp_path / "shots", 4)
+    with open_camera(str(folder)) as cam:
+        frames = list(cam)
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    assert [int(f.image[0, 0]) for f in frames] == [0, 10, 20, 30]
+    assert all(f.image.shape == (48, 64) and f.image.dtype == np.uint8 for f in frames)
+    times = [f.t_capture_ns for f in frames]
+    assert times == sorted(times) and times[-1] <= time.monotonic_ns()
+
+
+def test_video_file(tmp_path):
+    path = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (64, 48))
+    for k in range(6):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+    with open_camera(str(path)) as cam:
+        frames = list(cam)
+    assert len(frames) == 6
+    assert frames[0].image.ndim == 2
+    assert abs(int(frames[5].image.mean()) - 200) < 8
+
+
+@pytest.mark.parametrize(
+    ("url", "says"),
+    [
+        ("/dev/video97", "camera device /dev/video97 does not exist"),
+        ("97", "cannot open camera device 97"),
+        ("/dev/null", "cannot open camera device /dev/null"),
+        ("ftp://camera", "unknown camera scheme ftp://"),
+        ("/no/such/place.mp4", "video file not found"),
+        ("/no/such/place", "no camera, video file or image folder"),
+        ("virtual://nobody-renders-this", "virtual camera 'nobody-renders-this' not found"),
+    ],
+)
+def test_bad_cameras_are_one_line_errors(url, says):
+    assert says in one_line_error(url)
+
+
+def test_empty_folder_and_undecodable_video(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert "no images" in one_line_error(str(tmp_path / "empty"))
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"this is not a video" * 100)
+    assert "cannot open video file" in one_line_error(str(junk))
+
+
+def test_unknown_scheme_lists_the_known_ones():
+    message = one_line_error("rtsp://10.0.0.1/stream")
+    for scheme in ("device://", "folder://", "video://", "virtual://"):
+        assert scheme in message
+
+
+# -- grabber -------------------------------------------------------------------------------
+async def test_grabber_newest_frame_wins_and_counts_drops(tmp_path):
+    """A consumer slower than the source gets ever newer frames; everything it skipped is
+    counted as dropped, nothing is lost from the accounting."""
+    folder = write_images(tmp_path / "many", 40)
+    grabber = FrameGrabber(open_camera(str(folder)), pace=400)
+    got = []
+    while (frame := await grabber.next_frame(timeout=2.0)) is not None:
+        got.append(frame.index)
+        await asyncio.sleep(0.02)
+    grabber.close()
+    assert got == sorted(set(got)) and got[-1] == 39
+    assert grabber.captured == 40
+    assert grabber.dropped > 0
+    assert len(got) + grabber.dropped == grabber.captured
+    assert grabber.ended
+
+
+async def test_grabber_pace_and_timeout(tmp_path):
+    folder = write_images(tmp_path / "paced", 5)
+    grabber = FrameGrabber(open_camera(str(folder)), pace=50)
+    t0 = time.monotonic()
+    got = [await grabber.next_frame(timeout=1.0) for _ in range(5)]
+    assert [f.index for f in got] == [0, 1, 2, 3, 4]
+    assert time.monotonic() - t0 >= 4 / 50 * 0.9
+    assert await grabber.next_frame(timeout=0.2) is None
+    grabber.close()
+
+
+async def test_grabber_raises_a_read_error(tmp_path):
+    folder = write_images(tmp_path / "broken", 2)
+    (folder / "img_001.png").write_bytes(b"garbage")
+    grabber = FrameGrabber(open_camera(str(folder)))
+    assert (await grabber.next_frame(timeout=2.0)).index == 0
+    with pytest.raises(CameraError, match="cannot read image"):
+        await grabber.next_frame(timeout=2.0)
+    grabber.close()
+
+
+async def test_grabber_waits_on_a_silent_camera_and_closes():
+    """No frame yet is a timeout, not the end; closing stops the blocked reader promptly."""
+    with VirtualCamera(unique_name(), 32, 24) as cam:
+        grabber = FrameGrabber(open_camera(f"virtual://{cam.name}"))
+        assert await grabber.next_frame(timeout=0.05) is None
+        assert not grabber.ended
+        cam.publish(np.full((24, 32), 7, np.uint8), 123)
+        frame = await grabber.next_frame(timeout=1.0)
+        assert (frame.index, frame.t_capture_ns, int(frame.image[0, 0])) == (1, 123, 7)
+        t0 = time.monotonic()
+        grabber.close()
+        assert time.monotonic() - t0 < 1.0
+
+
+# -- the virtual camera ----------------------------------------------------------------------
+WRITER = textwrap.dedent(
+    """
+    import sys, time
+    import numpy as np
+    from hil.vcam import VirtualCamera
+
+    name, count, period = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+    with VirtualCamera(name, 64, 48) as cam:
+        print("ready", flush=True)
+        sys.stdin.readline()
+        for k in range(1, count + 1):
+            t_ns = time.monotonic_ns()
+            image = np.full((48, 64), k % 256, np.uint8)
+            image[0, :8] = np.frombuffer(t_ns.to_bytes(8, "little"), np.uint8)
+            cam.publish(image, t_ns)
+            time.sleep(period)
+    """
+)
+
+
+def start_writer(name, count, period):
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, name, str(count), str(period)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
+    assert proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def stamp(frame):
+    return int.from_bytes(frame.image[0, :8].tobytes(), "little")
+
+
+def test_virtual_camera_across_processes():
+    """Another process renders; this one reads every frame with the writer's capture time,
+    and the stream ends when the writer closes, which also removes the shared memory."""
+    name = unique_name()
+    proc = start_writer(name, 30, 0.01)
+    try:
+        cam = open_camera(f"virtual://{name}")
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        frames = list(cam)
+        cam.close()
+    finally:
+        proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    indices = [f.index for f in frames]  # a busy reader may skip one: newest wins
+    assert indices == sorted(set(indices)) and indices[-1] == 30 and len(indices) >= 20
+    assert all(int(f.image[5, 5]) == f.index for f in frames)
+    assert all(f.t_capture_ns == stamp(f) for f in frames)
+    assert not shm_path(name).exists()
+
+
+async def test_virtual_camera_newest_frame_wins_across_processes():
+    name = unique_name()
+    proc = start_writer(name, 200, 0.002)
+    try:
+        grabber = FrameGrabber(open_camera(f"virtual://{name}"))
+        grabber.start()
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        got = []
+        while (frame := await grabber.next_frame(timeout=5.0)) is not None:
+            assert frame.t_capture_ns == stamp(frame)
+            got.append(frame.index)
+            await asyncio.sleep(0.015)
+        grabber.close()
+    finally:
+        proc.communicate(timeout=10)
+    assert got == sorted(set(got)) and got[-1] == 200
+    assert grabber.dropped > 0
+    assert len(got) + grabber.dropped == grabber.captured
+
+
+def test_camera_faults_drop_and_stall():
+    image = np.zeros((24, 32), np.uint8)
+    with VirtualCamera(unique_name(), 32, 24, drop_probability=0.5, seed=1) as cam:
+        reader = open_camera(f"virtual://{cam.name}")
+        seen = []
+        for _ in range(40):
+            if cam.publish(image):
+                seen.append(reader.read().index)
+        assert cam.published + cam.faulted == cam.frames == 40
+        assert 5 < cam.faulted < 35
+        assert len(seen) == cam.published
+        assert seen == sorted(seen) and seen[-1] - seen[0] + 1 > len(seen)  # gaps show
+        cam.drop_probability = 0.0
+        cam.stall(0.2)
+        assert not cam.publish(image)
+        time.sleep(0.25)
+        assert cam.publish(image)
+        reader.close()
+
+
+def test_virtual_camera_name_is_exclusive_and_recording(tmp_path):
+    video = tmp_path / "run.mp4"
+    with VirtualCamera(unique_name(), 64, 48, video=video, fps=20) as cam:
+        with pytest.raises(FileExistsError, match="already exists"):
+            VirtualCamera(cam.name, 64, 48)
+        for k in range(5):
+            cam.publish(np.full((48, 64), 50 * k, np.uint8))
+        with pytest.raises(ValueError, match="expected a uint8 48x64"):
+            cam.publish(np.zeros((10, 10), np.uint8))
+    with open_camera(str(video)) as replay:
+        frames = list(replay)
+    assert len(frames) == 5
+    assert abs(int(frames[4].image.mean()) - 200) < 8

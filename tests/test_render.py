@@ -1,0 +1,97 @@
+"""The virtual camera's renderer: its projection is the ground truth the vision tests rely on."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from edge.geometry import CORNER_IDS, ArenaGeometry, square
+from hil.render import CameraModel, Renderer
+
+GEOMETRY = ArenaGeometry()
+CELLS = {"obstacle": [(2, 3)], "water": [(0, 4)], "wall": [(0, 3)], "target": [(6, 6)]}
+
+
+def detect(image):
+    """Full-resolution ArUco, corners refined with a 7x7 cornerSubPix: {id: [corners (4, 2)]}."""
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    corners, ids, _ = detector.detectMarkers(image)
+    found = {}
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.001)
+    for marker, quad in zip(ids.ravel().tolist(), corners, strict=True):
+        pts = quad.reshape(-1, 1, 2).copy()
+        cv2.cornerSubPix(image, pts, (3, 3), (-1, -1), criteria)
+        found.setdefault(marker, []).append(pts.reshape(4, 2))
+    return found
+
+
+@pytest.fixture(scope="module")
+def tilted():
+    return Renderer(GEOMETRY, CameraModel(tilt_deg=18, yaw_deg=5, k1=-0.1, k2=0.02))
+
+
+def test_markers_land_where_project_says(tilted):
+    """Through tilt and lens distortion, every detected marker corner sits within half a pixel
+    of the projected ground truth: the renderer and `project` agree."""
+    cars = [(5, 0.7, 0.6, 0.4), (6, 2.1, 2.3, -2.0), (7, 1.4, 1.5, math.pi / 2)]
+    found = detect(tilted.render(cars, CELLS))
+    for marker, x, y, heading in cars:
+        truth = tilted.project(square((x, y), GEOMETRY.car_marker_m, heading))
+        assert np.abs(found[marker][0] - truth).max() < 0.5
+    for marker, truth in zip(CORNER_IDS, GEOMETRY.corner_points(), strict=True):
+        assert np.abs(found[marker][0] - tilted.project(truth)).max() < 0.5
+    obstacle = square(GEOMETRY.cell_centre(2, 3), GEOMETRY.cell_marker_m, 0.0)
+    assert np.abs(found[40][0] - tilted.project(obstacle)).max() < 0.5
+    target = square(GEOMETRY.cell_centre(6, 6), GEOMETRY.cell_marker_m, 0.0)
+    assert np.abs(found[43][0] - tilted.project(target)).max() < 0.5
+
+
+def test_arena_fills_the_frame(tilted):
+    """The outer corners of the calibration markers are inside the frame and span most of it."""
+    outer = tilted.project(GEOMETRY.corner_points().reshape(-1, 2))
+    w, h = tilted.camera.width, tilted.camera.height
+    assert (outer >= 0).all() and (outer[:, 0] < w).all() and (outer[:, 1] < h).all()
+    assert np.ptp(outer[:, 1]) > 0.8 * h
+
+
+def test_frame_format_and_cars_leave_no_trace():
+    """Grayscale uint8 H x W; a car drawn in one frame is gone from the next (the renderer
+    restores its background), and without noise equal scenes render identically."""
+    r = Renderer(GEOMETRY, CameraModel(blur_sigma=1.0))
+    empty = r.render([], CELLS)
+    assert empty.shape == (1200, 1920) and empty.dtype == np.uint8
+    with_car = r.render([(9, 1.4, 1.4, 0.3)], CELLS)
+    changed = np.argwhere(with_car != empty)
+    assert len(changed) > 1000
+    centre = r.project(np.array([1.4, 1.4]))
+    assert np.abs(changed[:, ::-1] - centre).max() < 70  # only around the car
+    assert np.array_equal(r.render([], CELLS), empty)
+
+
+def test_layout_change_redraws_static_markers_and_the_target_moves():
+    r = Renderer(GEOMETRY, CameraModel())
+    assert 40 not in detect(r.render([], {}))
+    assert len(detect(r.render([], {"obstacle": [(1, 1), (7, 7)]}))[40]) == 2
+    assert 40 not in detect(r.render([], {}))
+    for cell in [(3, 3), (3, 4)]:
+        (quad,) = detect(r.render([], {"target": [cell]}))[43]
+        centre = r.project(np.array(GEOMETRY.cell_centre(*cell)))
+        assert np.abs(quad.mean(0) - centre).max() < 0.5
+
+
+def test_noise_and_gain():
+    """Noise of the configured sigma, different every frame, reproducible from the seed; the
+    gain and exposure scale the scene."""
+    model = CameraModel(noise_sigma=4.0, seed=3)
+    a, b = Renderer(GEOMETRY, model), Renderer(GEOMETRY, model)
+    f1, f2 = a.render([], {}), a.render([], {})
+    diff = f1.astype(np.int16) - f2.astype(np.int16)
+    assert 4.0 * math.sqrt(2) * 0.9 < diff.std() < 4.0 * math.sqrt(2) * 1.1
+    assert np.array_equal(b.render([], {}), f1)
+    dark = Renderer(GEOMETRY, CameraModel(exposure=0.5)).render([], {})
+    bright = Renderer(GEOMETRY, CameraModel(gain=1.2)).render([], {})
+    centre = (slice(550, 650), slice(900, 1000))
+    plain = Renderer(GEOMETRY, CameraModel()).render([], {})[centre].mean()
+    assert dark[centre].mean() == pytest.approx(plain * 0.5, abs=1)
+    assert bright[centre].mean() == pytest.approx(plain * 1.2, abs=1)
