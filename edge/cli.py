@@ -118,7 +118,7 @@ def load_policy(path: Path, geometry: ArenaGeometry) -> tuple[Any, DecisionStep]
             f"this arena is {geometry.rows}x{geometry.cols}"
         )
     task = task_of(policy.graph.metadata["env"])
-    return policy, DecisionStep(policy, task, spec, geometry)
+    return policy, DecisionStep(policy, task, spec)
 
 
 def _transport_options(args: argparse.Namespace) -> dict[str, Any]:

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edge.geometry import ArenaGeometry
 from edge.safety import STOP, Filtered, filter_moves
 from export.runtime import OnnxPolicy
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
@@ -54,26 +53,37 @@ class Decision:
 
 
 class DecisionStep:
-    """Per-episode state of the policy side: last actions and rewards per car, step count."""
+    """The policy side of one arena: per-slot last action, last reward, where each car should
+    be after its command, and its return this episode. State lives in arrays indexed by the
+    fleet's policy slot (a slot keeps its car until the car leaves), so a step costs a few
+    numpy calls whether 5 or 1,000 cars are driven."""
 
-    def __init__(
-        self, policy: OnnxPolicy, task: str, spec: ObsSpec, geometry: ArenaGeometry | None = None
-    ) -> None:
+    def __init__(self, policy: OnnxPolicy, task: str, spec: ObsSpec) -> None:
         self.policy = policy
         self.task = task
         self.spec = spec
-        self.geometry = geometry or ArenaGeometry(rows=spec.height, cols=spec.width)
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: memories, last actions and rewards, the step counter."""
+        """A new episode: memories, last actions and rewards, returns, the step counter."""
         self.policy.reset(0)
         self.t = 0
-        self.last_action: dict[int, int] = {}
-        self.last_reward: dict[int, float] = {}
-        self.expected: dict[int, tuple[int, int]] = {}
-        self.returns: dict[int, float] = {}
+        self.owner = np.zeros(0, np.int64)  # car id per slot, -1 for none
+        self.last_action = np.zeros(0, np.int64)
+        self.last_reward = np.zeros(0, np.float32)
+        self.expected = np.zeros((0, 2), np.int64)  # -1: no expectation
+        self.slot_return = np.zeros(0, np.float64)
+        self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
+
+    @property
+    def returns(self) -> dict[int, float]:
+        """Each car's return this episode (cars that left keep what they earned)."""
+        out = dict(self._banked)
+        for slot in np.flatnonzero(self.owner >= 0):
+            car = int(self.owner[slot])
+            out[car] = out.get(car, 0.0) + float(self.slot_return[slot])
+        return out
 
     def layout(self, cells: Mapping[str, frozenset[tuple[int, int]]]) -> tuple[np.ndarray, ...]:
         """Rules cell codes (H, W) from the static cell markers the camera sees, and their
@@ -109,24 +119,22 @@ class DecisionStep:
         if not cars:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
-        pos, present, target = self._scene(slots, cars, cells_of, static)
-        n_slots = pos.shape[1]
-        last_action = np.full((1, n_slots), -1, np.int64)
-        last_reward = np.zeros((1, n_slots), np.float32)
-        idx = np.array([slots[c] for c in cars], np.int64)
-        rewards = self._settle(cars, fresh, layout, pos, present, target)
-        for car in cars:
-            last_action[0, slots[car]] = self.last_action[car]
-            last_reward[0, slots[car]] = self.last_reward[car]
+        idx, pos, present, target = self._scene(slots, cars, cells_of, static)
+        rewards = self._settle(cars, idx, fresh, layout, pos, present, target)
         codes = scene_codes(padded, pos, present, self.spec.view, target)
-        obs = observe(self.spec, codes, pos, last_action, last_reward, present)[0]
-        fresh_mask = np.zeros(n_slots, bool)
-        fresh_mask[[slots[c] for c in cars if c in fresh]] = True
+        obs = observe(
+            self.spec, codes, pos, self.last_action[None], self.last_reward[None], present
+        )[0]
+        fresh_mask = np.zeros(len(self.owner), bool)
+        fresh_mask[[slots[c] for c in fresh if c in slots]] = True
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
         blockers = list(others or []) + sorted(static.get("target", ()))
-        filtered = self._filter(layout, cars, pos[0, idx], actions, blockers, moving or {})
+        moving = moving or {}
+        in_move = np.array([c in moving for c in cars], bool)
+        doing = np.array([moving.get(c, WAIT) for c in cars], np.int64)
+        filtered = self._filter(layout, idx, pos[0, idx], actions, blockers, in_move, doing)
         self.t += 1
         t3 = time.perf_counter_ns()
         return Decision(
@@ -151,8 +159,8 @@ class DecisionStep:
         if not cars or self.t == 0:
             return np.zeros(len(cars), np.float32)
         layout, _ = self.layout(static)
-        pos, present, target = self._scene(slots, cars, cells_of, static)
-        return self._settle(cars, set(), layout, pos, present, target)
+        idx, pos, present, target = self._scene(slots, cars, cells_of, static)
+        return self._settle(cars, idx, set(), layout, pos, present, target)
 
     def _scene(
         self,
@@ -160,23 +168,32 @@ class DecisionStep:
         cars: tuple[int, ...],
         cells_of: Mapping[int, tuple[int, int]],
         static: Mapping[str, frozenset[tuple[int, int]]],
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Positions (1, S, 2), presence (1, S) and the surround target (1, 2) of one arena."""
-        n_slots = max(slots.values()) + 1
-        pos = np.zeros((1, n_slots, 2), np.int64)
-        present = np.zeros((1, n_slots), bool)
-        idx = [slots[c] for c in cars]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Slots of ``cars``, positions (1, S, 2), presence (1, S), surround target (1, 2);
+        the per-slot state grows to S slots."""
+        idx = np.fromiter((slots[c] for c in cars), np.int64, len(cars))
+        n_slots = int(idx.max()) + 1
+        if n_slots > len(self.owner):
+            grow = n_slots - len(self.owner)
+            self.owner = np.concatenate([self.owner, np.full(grow, -1, np.int64)])
+            self.last_action = np.concatenate([self.last_action, np.full(grow, -1, np.int64)])
+            self.last_reward = np.concatenate([self.last_reward, np.zeros(grow, np.float32)])
+            self.expected = np.concatenate([self.expected, np.full((grow, 2), -1, np.int64)])
+            self.slot_return = np.concatenate([self.slot_return, np.zeros(grow)])
+        pos = np.zeros((1, len(self.owner), 2), np.int64)
+        present = np.zeros((1, len(self.owner)), bool)
         pos[0, idx] = [cells_of[c] for c in cars]
         present[0, idx] = True
         target = None
         if self.task == "surround":
             target_cells = sorted(static.get("target", ()))
             target = np.array([target_cells[0] if target_cells else (-1, -1)], np.int64)
-        return pos, present, target
+        return idx, pos, present, target
 
     def _settle(
         self,
         cars: tuple[int, ...],
+        idx: np.ndarray,
         fresh: set[int],
         layout: np.ndarray,
         pos: np.ndarray,
@@ -184,55 +201,46 @@ class DecisionStep:
         target: np.ndarray | None,
     ) -> np.ndarray:
         """Each car's reward for the step that ended (the arena's own reward code), added to its
-        return; a new car starts with no last action and no reward."""
+        return; a car new to its slot starts with no last action, no reward, no return."""
+        car_ids = np.array(cars, np.int64)
+        new = (self.owner[idx] != car_ids) | np.array([c in fresh for c in cars], bool)
+        for slot in idx[new & (self.owner[idx] >= 0)]:
+            old = int(self.owner[slot])
+            self._banked[old] = self._banked.get(old, 0.0) + float(self.slot_return[slot])
+        self.owner[idx] = car_ids
+        renew = idx[new]
+        self.last_action[renew] = -1
+        self.last_reward[renew] = 0.0
+        self.expected[renew] = -1
+        self.slot_return[renew] = 0.0
         rewards = np.zeros(len(cars), np.float32)
         if self.t > 0:
             step = np.array([self.t])
-            all_rewards = task_rewards(self.task, layout[None], pos, present, target, step)[0]
-            rewards = all_rewards[np.flatnonzero(present[0])]  # slot order is fleet order
-        for i, car in enumerate(cars):
-            if car in fresh or car not in self.last_action:
-                self.last_action[car] = -1
-                self.last_reward[car] = 0.0
-                self.expected.pop(car, None)
-                rewards[i] = 0.0
-            else:
-                self.last_reward[car] = float(rewards[i])
-                self.returns[car] = self.returns.get(car, 0.0) + float(rewards[i])
+            rewards = task_rewards(self.task, layout[None], pos, present, target, step)[0][idx]
+            rewards[new] = 0.0
+            self.last_reward[idx] = rewards
+            self.slot_return[idx] += rewards
         return rewards
 
     def _filter(
         self,
         layout: np.ndarray,
-        cars: tuple[int, ...],
+        idx: np.ndarray,
         car_pos: np.ndarray,
         actions: np.ndarray,
         others: list[tuple[int, int]],
-        moving: Mapping[int, int],
+        in_move: np.ndarray,
+        doing: np.ndarray,
     ) -> Filtered:
-        """The safety filter, then what each car's command should lead to (checked next step)."""
-        held = [
-            tuple(map(int, car_pos[i] + ACTION_DELTAS[moving[c]]))
-            for i, c in enumerate(cars)
-            if c in moving
-        ]
-        blockers = np.array(list(others) + held, np.int64).reshape(-1, 2)
-        expected = np.array(
-            [(-1, -1) if c in moving else self.expected.get(c, (-1, -1)) for c in cars], np.int64
-        )
-        wanted = np.where([c in moving for c in cars], WAIT, actions)
-        filtered = filter_moves(
-            layout, car_pos, wanted, expected=expected.reshape(-1, 2), others=blockers
-        )
-        for i, car in enumerate(cars):
-            self.last_action[car] = int(actions[i])
-            command = int(filtered.commands[i])
-            if car in moving:
-                self.expected[car] = (-1, -1)
-            else:
-                to = car_pos[i] + ACTION_DELTAS[command if command < STOP else WAIT]
-                self.expected[car] = (int(to[0]), int(to[1]))
-        for gone in set(self.last_action) - set(cars):
-            self.last_action.pop(gone)
-            self.expected.pop(gone, None)
+        """The safety filter, then where each car's command should take it (checked next step).
+        Cars still in a move are not checked and hold the cell they are heading for."""
+        held = car_pos[in_move] + ACTION_DELTAS[doing[in_move]]
+        blockers = np.concatenate([np.array(others, np.int64).reshape(-1, 2), held])
+        expected = np.where(in_move[:, None], -1, self.expected[idx])
+        wanted = np.where(in_move, WAIT, actions)
+        filtered = filter_moves(layout, car_pos, wanted, expected=expected, others=blockers)
+        commands = filtered.commands
+        self.last_action[idx] = actions
+        step_to = car_pos + ACTION_DELTAS[np.where(commands == STOP, WAIT, commands)]
+        self.expected[idx] = np.where(in_move[:, None], -1, step_to)
         return filtered

@@ -153,6 +153,9 @@ def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
     d = step.decide({7: 0, 9: 2}, {9}, {7: (6, 4), 9: (8, 8)}, static, moving={7: UP})
     assert d.cars == (7, 9) and d.commands[0] == WAIT  # a car still moving is not re-commanded
     d = step.decide({9: 2}, set(), {9: (8, 8)}, static)
-    assert d.cars == (9,) and 7 not in step.last_action
+    assert d.cars == (9,)
+    d = step.decide({8: 0, 9: 2}, {8}, {8: (5, 0), 9: (8, 8)}, static)
+    assert d.cars == (8, 9) and step.owner[0] == 8  # car 8 took car 7's slot, fresh
+    assert set(step.returns) == {7, 8, 9}  # car 7 keeps what it earned
     d = step.decide({}, set(), {}, static)
     assert d.cars == () and d.commands.shape == (0,)

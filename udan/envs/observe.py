@@ -8,6 +8,7 @@ and calls :func:`observe`, so a policy sees the same numbers on real cars as in 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -76,18 +77,27 @@ def observe(
     n_batch, n_agents = present.shape
     win = spec.window
     hp, wp = padded_codes.shape[1:]
-    base = (np.arange(n_batch) * (hp * wp))[:, None] + pos[..., 0] * wp + pos[..., 1]
-    offsets = (np.arange(win)[:, None] * wp + np.arange(win)[None, :]).ravel()
-    cells = np.take(padded_codes, base[..., None] + offsets)  # (B, N, win*win)
+    base = pos[..., 0] * wp + pos[..., 1]
+    if n_batch > 1:
+        base += (np.arange(n_batch) * (hp * wp))[:, None]
+    cells = np.take(padded_codes, base[..., None] + _window_offsets(win, wp))  # (B, N, win*win)
     cells[..., (win * win) // 2] &= ~np.uint8(AGENT_BIT)
-    bits = np.array([BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT], dtype=np.uint8)
     out = np.empty((n_batch, n_agents, spec.size), dtype=np.float32)
     spatial = out[..., : spec.spatial_size].reshape(n_batch, n_agents, len(CHANNELS), win * win)
-    np.not_equal(cells[..., None, :] & bits[:, None], 0, out=spatial)
+    np.not_equal(cells[..., None, :] & _BITS[:, None], 0, out=spatial)
     feat = out[..., spec.spatial_size :]
-    feat[..., 0] = pos[..., 0] / max(spec.height - 1, 1)
-    feat[..., 1] = pos[..., 1] / max(spec.width - 1, 1)
-    np.equal(last_action[..., None], np.arange(N_ACTIONS), out=feat[..., 2 : 2 + N_ACTIONS])
+    np.divide(pos, (max(spec.height - 1, 1), max(spec.width - 1, 1)), out=feat[..., :2])
+    np.equal(last_action[..., None], _ACTION_IDS, out=feat[..., 2 : 2 + N_ACTIONS])
     feat[..., -1] = last_reward
-    out[~present] = 0.0
+    out *= present[..., None]
     return out
+
+
+_BITS = np.array([BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT], dtype=np.uint8)
+_ACTION_IDS = np.arange(N_ACTIONS)
+
+
+@functools.cache
+def _window_offsets(win: int, padded_width: int) -> np.ndarray:
+    """Flat offsets of a ``win`` x ``win`` window's cells from its top-left cell."""
+    return (np.arange(win)[:, None] * padded_width + np.arange(win)[None, :]).ravel()
