@@ -334,6 +334,8 @@ class CarLink:
 
     def _transmit(self, flight: _Flight, report: DispatchReport) -> None:
         r = flight.report
+        if self._clock() >= report.deadline_ns - self._send_margin_ns:
+            return  # checked again right before the syscall: encoding may have been preempted
         sent = self._send(r.car_id, flight.frame)
         after = self._clock()
         if sent:

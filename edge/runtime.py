@@ -43,7 +43,7 @@ def _outcome(command: CommandReport) -> str:
     """on_time (the car accepted it in time), missed, or not_ready (nothing was sent)."""
     if command.acked:
         return "on_time"
-    return "missed" if command.attempts else "not_ready"
+    return "not_ready" if command.result == "not_ready" else "missed"
 
 
 class WorldError(RuntimeError):
