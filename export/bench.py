@@ -2,11 +2,11 @@
 
 Two figures per fleet size N, both on one thread:
 
-- ``call``: one inference of the graph (IOBinding, outputs preallocated) with groups in
-  force, as at a step between group formations (torch: the same computation,
-  :func:`export.verify.torch_step`). The agents with the model's top 1/k leader scores lead,
-  so groups cover the fleet whatever the threshold of a barely trained model would give. The
-  targets are on this figure.
+- ``call``: one inference of the graph with groups in force, as :class:`OnnxPolicy` makes it
+  at a step between group formations (:class:`export.runtime.BoundGraph`: observations copied
+  into bound buffers; torch: the same computation, :func:`export.verify.torch_step`). The
+  agents with the model's top 1/k leader scores lead, so groups cover the fleet whatever the
+  threshold of a barely trained model would give. The targets are on this figure.
 - ``step``: a whole decision step as the edge takes it, :class:`export.runtime.OnnxPolicy.act`
   vs :meth:`udan.learner.Actor.act`, over consecutive steps with groups formed every T steps
   (numpy grouping included, and the second graph call at formation steps).
@@ -23,7 +23,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from export.runtime import OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
+from export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
 from export.verify import torch_step
 from udan.envs.grouping import form_groups, neighbour_table
 from udan.learner import Actor, MultiAgentQ
@@ -91,17 +91,6 @@ def bench(
     }
 
 
-def _bound(graph: PolicyGraph, feeds: dict[str, np.ndarray]) -> Callable[[], None]:
-    """One graph call through an IOBinding with inputs bound once and outputs preallocated, as
-    a tight edge loop would run it (saves onnxruntime's per-call output allocation)."""
-    binding = graph.session.io_binding()
-    for name in graph.input_names:
-        binding.bind_cpu_input(name, feeds[name])
-    for name, value in graph.run(feeds).items():
-        binding.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(np.empty_like(value)))
-    return lambda: graph.session.run_with_iobinding(binding)
-
-
 def _bench_size(path: Path, model: MultiAgentQ, n: int, repeats: int, seed: int) -> dict:
     spec = model.spec
     rng = np.random.default_rng(seed)
@@ -109,8 +98,8 @@ def _bench_size(path: Path, model: MultiAgentQ, n: int, repeats: int, seed: int)
     graph = PolicyGraph(path)
     feeds = {
         "obs": scene["obs"],
-        "h": np.zeros((n, spec.hidden), np.float32),
-        "c": np.zeros((n, spec.hidden), np.float32),
+        "h": np.zeros((1, n, spec.hidden), np.float32),
+        "c": np.zeros((1, n, spec.hidden), np.float32),
         "fresh": np.zeros(n, bool),
         "neighbours": neighbour_table(scene["pos"], scene["present"], spec.attention_neighbours),
     }
@@ -121,11 +110,16 @@ def _bench_size(path: Path, model: MultiAgentQ, n: int, repeats: int, seed: int)
         groups = form_groups(scene["pos"], scene["present"], logits, spec.group_size, threshold)
         feeds["neighbours"] = no_neighbours(n)  # what a step between formations passes
     feeds.update(round_inputs(groups))
+    bound = BoundGraph(graph, feeds["h"].copy(), feeds["c"].copy())
+    if spec.communicates:
+        bound.bind_groups(groups)
     row = {
         "agents": n,
         "groups": len(groups),
-        "rounds": len(feeds["round_starts"]) - 1,
-        "call_ms": _pair(_bound(graph, feeds), lambda: torch_step(model, feeds, groups), repeats),
+        "rounds": len(feeds["round_groups"]),
+        "call_ms": _pair(
+            lambda: bound.run(scene["obs"]), lambda: torch_step(model, feeds, groups), repeats
+        ),
     }
     policy, actor = OnnxPolicy(path), Actor(model, 1, n)
     policy.reset(n)

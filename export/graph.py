@@ -1,194 +1,163 @@
-"""Checkpoint -> one ONNX graph: encoder, leader scores, a Loop over bridge rounds, Q head.
+"""Checkpoint -> one ONNX graph, written node by node from the model's weights.
 
-The pieces with weights are traced from the model's own modules (``torch.onnx.export``, the
-TorchScript exporter: on this torch the dynamo exporter specialises the group width ``s`` of the
-BiLSTM input to the traced value). The pieces are then joined by hand: the communication round
-becomes the body of an ONNX ``Loop`` over ``round_starts``, so one graph handles any number of
-rounds, groups and agents. Layout and reasons: export/README.md.
+For networks this small onnxruntime's cost is mostly a fixed price per node (about a
+microsecond) and per ``LSTM`` op (about ten), so the graph is written with as few nodes as the
+computation allows rather than traced: Gemm layers, one ONNX ``LSTM`` op for the agents'
+memory and one per round for the group BiLSTM, a ``Loop`` over the bridge rounds, the leader
+scores under an ``If``. That it computes what the model's own modules compute is checked on
+every export (:mod:`export.verify`). Layout and reasons: export/README.md.
 """
 
 from __future__ import annotations
 
-import io
-import warnings
 from collections.abc import Mapping
 
+import numpy as np
 import onnx
-import torch
-from onnx import TensorProto, helper
-from torch import nn
+from onnx import TensorProto, helper, numpy_helper
 
 from udan.learner import MultiAgentQ
 
 OPSET = 18
 
-#: Symbolic name of every dynamic axis, per input and output of the joined graph.
+#: Symbolic name of every dynamic axis, per input and output of the graph.
 AXES: dict[str, dict[int, str]] = {
     "obs": {0: "agents"},
-    "h": {0: "agents"},
-    "c": {0: "agents"},
-    "fresh": {0: "agents"},
+    "h": {1: "agents"},
+    "c": {1: "agents"},
     "neighbours": {0: "agents", 1: "neighbour_slots"},
-    "members": {0: "groups", 1: "group_slots"},
-    "round_starts": {0: "rounds_plus_one"},
+    "members": {0: "group_width", 1: "groups"},
+    "round_groups": {0: "rounds"},
     "q": {0: "agents"},
     "action": {0: "agents"},
-    "h_out": {0: "agents"},
-    "c_out": {0: "agents"},
+    "h_out": {1: "agents"},
+    "c_out": {1: "agents"},
     "leader_logits": {0: "agents"},
 }
 
+#: Leader-score floor for neighbours that are not there (-1). Finite, unlike the model's -inf:
+#: an absent slot's row (all -1) then averages agent 0's value over its K columns, which is
+#: what the model's always-valid first column gives it, instead of NaN.
+NO_NEIGHBOUR = -1e30
 
-class _Encode(nn.Module):
-    """Encoder step: MLP + LSTM, memory zeroed for fresh agents (as ``AgentEncoder.forward``)."""
-
-    def __init__(self, model: MultiAgentQ) -> None:
-        super().__init__()
-        self.encoder = model.encoder
-
-    def forward(self, obs, h, c, fresh):
-        state = self.encoder.forget((h[None], c[None]), fresh)
-        feats, (h_out, c_out) = self.encoder(obs[None], state)
-        return feats[0], h_out[0], c_out[0]
+F32, I64, BOOL = TensorProto.FLOAT, TensorProto.INT64, TensorProto.BOOL
 
 
-class _Round(nn.Module):
-    """One round of disjoint groups (eqs. 2-3): members' encodings go through the BiLSTM."""
+class _Graph:
+    """Nodes of one (sub)graph being written; weights and names are shared with its parents."""
 
-    def __init__(self, model: MultiAgentQ) -> None:
-        super().__init__()
-        self.comm = model.comm
+    def __init__(self, parent: _Graph | None = None) -> None:
+        self.nodes: list[onnx.NodeProto] = []
+        self.weights: list[onnx.TensorProto] = [] if parent is None else parent.weights
+        self._count = [0] if parent is None else parent._count
+        self._consts: dict[tuple, str] = {} if parent is None else parent._consts
 
-    def forward(self, enc, members):
-        return self.comm.round(enc, members)
+    def sub(self) -> _Graph:
+        """A graph for a Loop body or If branch: its weights and constants go to the outer
+        graph (a subgraph may read outer values), so the file holds each once."""
+        return _Graph(self)
 
+    def _name(self, hint: str) -> str:
+        self._count[0] += 1
+        return f"{hint}_{self._count[0]}"
 
-class _Head(nn.Module):
-    """Message (final encoding of grouped agents, zero otherwise), Q head and greedy action."""
+    def op(self, op_type: str, *inputs: str, out: str | list[str] | None = None, **attrs) -> str:
+        """Append a node and return its (first) output: ``out``, or a fresh name."""
+        outputs = [out] if isinstance(out, str) else out or [self._name(op_type.lower())]
+        self.nodes.append(helper.make_node(op_type, list(inputs), outputs, **attrs))
+        return outputs[0]
 
-    def __init__(self, model: MultiAgentQ) -> None:
-        super().__init__()
-        self.model = model
+    def split(self, value: str, parts: int, axis: int) -> list[str]:
+        """``value`` cut into ``parts`` equal pieces along ``axis``."""
+        outputs = [self._name("split") for _ in range(parts)]
+        self.op("Split", value, out=outputs, axis=axis, num_outputs=parts)
+        return outputs
 
-    def forward(self, feats, enc, members):
-        if self.model.spec.communicates:
-            grouped = torch.zeros(feats.shape[0], dtype=torch.bool)
-            grouped = grouped.index_put((members.reshape(-1),), torch.tensor(True))
-            message = torch.where(grouped[:, None], enc, torch.zeros_like(enc))
-        else:
-            message = self.model.messages(feats, [])
-        q = self.model.head(feats, message)
-        return q, q.argmax(-1)
+    def weight(self, hint: str, array: np.ndarray) -> str:
+        name = self._name(hint)
+        self.weights.append(numpy_helper.from_array(np.ascontiguousarray(array), name))
+        return name
 
-
-def _trace(
-    module: nn.Module, args: tuple, inputs: list[str], outputs: list[str]
-) -> onnx.GraphProto:
-    axes = {name: AXES.get(name, {0: "agents"}) for name in inputs + outputs}
-    buf = io.BytesIO()
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notice
-        torch.onnx.export(
-            module.eval(),
-            args,
-            buf,
-            dynamo=False,
-            opset_version=OPSET,
-            input_names=inputs,
-            output_names=outputs,
-            dynamic_axes=axes,
-        )
-    return onnx.load_from_string(buf.getvalue()).graph
+    def const(self, *values: int | float, scalar: bool = False) -> str:
+        """A small int64 (or float32) constant, one initializer per distinct value."""
+        dtype = np.float32 if isinstance(values[0], float) else np.int64
+        array = np.array(values[0] if scalar else values, dtype)
+        key = (array.dtype.str, array.shape, array.tobytes())
+        if key not in self._consts:
+            self._consts[key] = self.weight("const", array)
+        return self._consts[key]
 
 
-def _inline(
-    graph: onnx.GraphProto, prefix: str, names: Mapping[str, str]
-) -> tuple[list[onnx.NodeProto], list[onnx.TensorProto]]:
-    """The piece's nodes and weights with inner names prefixed and its inputs/outputs renamed,
-    ready to sit in another graph."""
-
-    def rename(name: str) -> str:
-        return names.get(name, f"{prefix}/{name}") if name else name
-
-    nodes = []
-    for node in graph.node:
-        node = onnx.NodeProto.FromString(node.SerializeToString())
-        node.input[:] = [rename(n) for n in node.input]
-        node.output[:] = [rename(n) for n in node.output]
-        node.name = f"{prefix}/{node.name}"
-        nodes.append(node)
-    weights = []
-    for init in graph.initializer:
-        init = onnx.TensorProto.FromString(init.SerializeToString())
-        init.name = rename(init.name)
-        weights.append(init)
-    return nodes, weights
-
-
-def _value(name: str, elem: int, dims: list[int | str | None]) -> onnx.ValueInfoProto:
+def _value(name: str, elem: int, dims: list[int | str]) -> onnx.ValueInfoProto:
     return helper.make_tensor_value_info(name, elem, dims)
+
+
+def _onnx_gates(w: np.ndarray) -> np.ndarray:
+    """torch's LSTM gate order (i, f, g, o) along axis 0 -> ONNX's (i, o, f, c)."""
+    i, f, g, o = np.split(w, 4, axis=0)
+    return np.concatenate([i, o, f, g])
+
+
+def _lstm_weights(
+    w: Mapping[str, np.ndarray], prefix: str, suffixes: tuple[str, ...], inputs: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ONNX ``LSTM`` inputs W, R, B for the directions (``suffixes``) of a torch ``nn.LSTM``;
+    W gets zero columns up to ``inputs`` (input columns the LSTM does not see)."""
+    ws, rs, bs = [], [], []
+    for suffix in suffixes:
+        w_ih = _onnx_gates(w[f"{prefix}weight_ih_l0{suffix}"])
+        ws.append(np.pad(w_ih, ((0, 0), (0, inputs - w_ih.shape[1]))))
+        rs.append(_onnx_gates(w[f"{prefix}weight_hh_l0{suffix}"]))
+        biases = (w[f"{prefix}bias_{part}_l0{suffix}"] for part in ("ih", "hh"))
+        bs.append(np.concatenate([_onnx_gates(b) for b in biases]))
+    return np.stack(ws), np.stack(rs), np.stack(bs)
 
 
 def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelProto:
     """The policy of ``model`` as one ONNX model with ``metadata`` in ``metadata_props``."""
     spec = model.spec
-    n, k, hidden = 4, max(spec.group_size, 2), spec.hidden
-    state = torch.zeros(n, hidden)
-    members = torch.arange(k)[None, :] % n
-    model = model.eval()
-
-    encode = ["obs", "h", "c", "fresh", "feats", "h_out", "c_out"]
-    nodes, weights = _inline(
-        _trace(
-            _Encode(model),
-            (torch.rand(n, spec.obs_dim), state, state, torch.zeros(n, dtype=torch.bool)),
-            encode[:4],
-            encode[4:],
-        ),
-        "encode",
-        {name: name for name in encode},
+    hidden = spec.hidden
+    w = {
+        name: t.detach().cpu().numpy().astype(np.float32) for name, t in model.state_dict().items()
+    }
+    g = _Graph()
+    feats = _encoder(g, w, hidden)
+    w_head = w["head.net.0.weight"].T  # (2 * hidden, hidden): features, then message
+    z = g.op(
+        "Gemm", feats, g.weight("head_w", w_head[:hidden]), g.weight("head_b", w["head.net.0.bias"])
     )
-    head_nodes, head_weights = _inline(
-        _trace(_Head(model), (state, state, members), ["feats", "enc", "members"], ["q", "a"]),
-        "head",
-        {"feats": "feats", "enc": "comm_out", "members": "members", "q": "q", "a": "action"},
-    )
-    weights += head_weights
     if spec.communicates:
-        leader, leader_weights = _leader_branches(model, state)
-        body, body_weights = _round_loop_body(model, state, members)
-        weights += leader_weights + body_weights
-        nodes += [
-            *leader,
-            helper.make_node("Constant", [], ["one"], value_int=1),
-            helper.make_node("Constant", [], ["go"], value=_scalar("go", TensorProto.BOOL, True)),
-            helper.make_node("Size", ["round_starts"], ["n_starts"]),
-            helper.make_node("Sub", ["n_starts", "one"], ["n_rounds"]),
-            helper.make_node("Loop", ["n_rounds", "go", "feats"], ["comm_out"], body=body),
-        ]
-    nodes += head_nodes
+        _leader(g, w, feats)
+        message = _communicate(g, w, feats, hidden)  # (N, hidden + 1): the flag column last
+        w_message = np.pad(w_head[hidden:], ((0, 1), (0, 0)))
+        z = g.op("Gemm", message, g.weight("head_w_message", w_message), z)
+    w_out, b_out = (
+        g.weight("head_w_q", w["head.net.2.weight"].T),
+        g.weight("head_b_q", w["head.net.2.bias"]),
+    )
+    q = g.op("Gemm", g.op("Relu", z), w_out, b_out, out="q")
+    g.op("ArgMax", q, axis=1, keepdims=0, out="action")
 
-    f32, i64 = TensorProto.FLOAT, TensorProto.INT64
+    state = [1, "agents", hidden]
     inputs = [
-        _value("obs", f32, ["agents", spec.obs_dim]),
-        _value("h", f32, ["agents", hidden]),
-        _value("c", f32, ["agents", hidden]),
-        _value("fresh", TensorProto.BOOL, ["agents"]),
+        _value("obs", F32, ["agents", spec.obs_dim]),
+        _value("h", F32, state),
+        _value("c", F32, state),
     ]
     outputs = [
-        _value("q", f32, ["agents", spec.n_actions]),
-        _value("action", i64, ["agents"]),
-        _value("h_out", f32, ["agents", hidden]),
-        _value("c_out", f32, ["agents", hidden]),
+        _value("q", F32, ["agents", spec.n_actions]),
+        _value("action", I64, ["agents"]),
+        _value("h_out", F32, state),
+        _value("c_out", F32, state),
     ]
     if spec.communicates:
         inputs += [
-            _value("neighbours", i64, ["agents", "neighbour_slots"]),
-            _value("members", i64, ["groups", "group_slots"]),
-            _value("round_starts", i64, ["rounds_plus_one"]),
+            _value("neighbours", I64, ["agents", "neighbour_slots"]),
+            _value("members", I64, ["group_width", "groups"]),
+            _value("round_groups", I64, ["rounds"]),
         ]
-        outputs.append(_value("leader_logits", f32, ["agents"]))
-    graph = helper.make_graph(nodes, f"udan_{spec.algo}_policy", inputs, outputs, weights)
+        outputs.append(_value("leader_logits", F32, ["agents"]))
+    graph = helper.make_graph(g.nodes, f"udan_{spec.algo}_policy", inputs, outputs, g.weights)
     onnx_model = helper.make_model(
         graph,
         opset_imports=[helper.make_opsetid("", OPSET)],
@@ -200,87 +169,94 @@ def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelPr
     return onnx_model
 
 
-def _scalar(name: str, elem: int, value: object) -> onnx.TensorProto:
-    return helper.make_tensor(name, elem, [], [value])
+def _encoder(g: _Graph, w: Mapping[str, np.ndarray], hidden: int) -> str:
+    """MLP, then one step of the model's LSTM from (h, c): writes ``h_out`` and ``c_out`` and
+    returns the features (N, hidden), which are ``h_out``."""
+    x = "obs"
+    for layer in ("0", "2"):
+        weight = g.weight(f"mlp{layer}_w", w[f"encoder.mlp.{layer}.weight"].T)
+        x = g.op(
+            "Relu",
+            g.op("Gemm", x, weight, g.weight(f"mlp{layer}_b", w[f"encoder.mlp.{layer}.bias"])),
+        )
+    w_ih, w_hh, b = _lstm_weights(w, "encoder.lstm.", ("",), hidden)
+    weights = [g.weight("lstm_w", w_ih), g.weight("lstm_r", w_hh), g.weight("lstm_b", b)]
+    steps = g.op("Unsqueeze", x, g.const(0))  # (1 step, N, hidden)
+    g.op("LSTM", steps, *weights, "", "h", "c", out=["", "h_out", "c_out"], hidden_size=hidden)
+    return g.op("Squeeze", "h_out", g.const(0))
 
 
-def _leader_branches(
-    model: MultiAgentQ, state: torch.Tensor
-) -> tuple[list[onnx.NodeProto], list[onnx.TensorProto]]:
-    """``leader_logits`` under an ``If``: computed when ``neighbours`` has columns, else zeros.
+def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
+    """``leader_logits`` under an ``If``: the attention when ``neighbours`` has columns, else
+    zeros. Leader scores are needed at group-formation steps only; every other call passes
+    ``neighbours`` with no columns and skips the attention."""
+    s = g.sub()
+    attn_dim = w["leader.key.weight"].shape[0]
+    scale = np.float32(attn_dim**-0.5)
+    w_kv = np.concatenate([w["leader.key.weight"], w["leader.value.weight"]]).T
+    b_kv = np.concatenate([w["leader.key.bias"], w["leader.value.bias"]])
+    kv = s.op("Gemm", feats, s.weight("leader_w_kv", w_kv), s.weight("leader_b_kv", b_kv))
+    rows = s.op("Max", "neighbours", s.const(0, scalar=True))  # -1 (none) reads row 0, masked
+    keys, values = s.split(s.op("Gather", kv, rows), 2, axis=-1)  # (N, K, attn_dim) each
+    w_q, b_q = w["leader.query.weight"].T * scale, w["leader.query.bias"] * scale
+    query = s.op("Gemm", feats, s.weight("leader_w_q", w_q), s.weight("leader_b_q", b_q))
+    query = s.op("Unsqueeze", query, s.const(1))
+    scores = s.op("ReduceSum", s.op("Mul", query, keys), s.const(-1), keepdims=0)
+    there = s.op("GreaterOrEqual", "neighbours", s.const(0, scalar=True))
+    scores = s.op("Where", there, scores, s.const(NO_NEIGHBOUR, scalar=True))
+    attn = s.op("Unsqueeze", s.op("Softmax", scores, axis=-1), s.const(-1))
+    attended = s.op("ReduceSum", s.op("Mul", attn, values), s.const(1), keepdims=0)
+    w_out, b_out = w["leader.out.weight"].T, w["leader.out.bias"]  # rows: attended, features
+    own = s.op("Gemm", feats, s.weight("leader_w_f", w_out[attn_dim:]), s.weight("leader_b", b_out))
+    logits = s.op("Gemm", attended, s.weight("leader_w_a", w_out[:attn_dim]), own)
+    s.op("Reshape", logits, s.const(-1), out="scores")
+    scored = helper.make_graph(s.nodes, "scored", [], [_value("scores", F32, ["agents"])])
 
-    Leader scores are only needed at group-formation steps; every other call passes
-    ``neighbours`` with no columns and skips the attention.
+    z = g.sub()
+    zero = helper.make_tensor("zero", F32, [1], [0.0])
+    z.op("ConstantOfShape", z.op("Shape", feats, end=1), out="zeros", value=zero)
+    unscored = helper.make_graph(z.nodes, "unscored", [], [_value("zeros", F32, ["agents"])])
+
+    wanted = g.op("Greater", g.op("Size", "neighbours"), g.const(0, scalar=True))
+    g.op("If", wanted, out="leader_logits", then_branch=scored, else_branch=unscored)
+
+
+def _communicate(g: _Graph, w: Mapping[str, np.ndarray], feats: str, hidden: int) -> str:
+    """Messages (N, hidden + 1, the last column a "grouped" flag): the group BiLSTM round
+    after round (a ``Loop``), zero rows for agents in no group.
+
+    The Loop carries ``enc`` (N, hidden + 1): each agent's encoding and the flag. A round is
+    the model's BiLSTM as one ONNX ``LSTM`` over the round's groups (s steps, the groups as the
+    batch), then its projection, which also sets the flag, scattered back to the members.
     """
-    neighbours = torch.arange(state.shape[0])[:, None].repeat(1, 2)
-    nodes, weights = _inline(
-        _trace(model.leader, (state, neighbours), ["feats", "neighbours"], ["logits"]),
-        "leader",
-        {"feats": "feats", "neighbours": "neighbours", "logits": "scores"},
-    )
-    f32 = TensorProto.FLOAT
-    scored = helper.make_graph(nodes, "scored", [], [_value("scores", f32, ["agents"])])
-    unscored = helper.make_graph(
-        [
-            helper.make_node("Shape", ["feats"], ["n_agents"], end=1),
-            helper.make_node(
-                "ConstantOfShape",
-                ["n_agents"],
-                ["zeros"],
-                value=helper.make_tensor("", f32, [1], [0]),
-            ),
-        ],
-        "unscored",
-        [],
-        [_value("zeros", f32, ["agents"])],
-    )
-    nodes = [
-        helper.make_node("Shape", ["neighbours"], ["nb_width"], start=1, end=2),
-        helper.make_node("Constant", [], ["no_width"], value_ints=[0]),
-        helper.make_node("Greater", ["nb_width", "no_width"], ["nb_wanted"]),
-        helper.make_node("Squeeze", ["nb_wanted"], ["score"]),
-        helper.make_node(
-            "If", ["score"], ["leader_logits"], then_branch=scored, else_branch=unscored
-        ),
+    width = w["comm.lstm.weight_hh_l0"].shape[1]
+    w_ih, w_hh, b = _lstm_weights(w, "comm.lstm.", ("", "_reverse"), hidden + 1)
+    w_proj = np.pad(w["comm.proj.weight"].T, ((0, 0), (0, 1)))  # rows: forward, backward
+    b_proj = np.append(w["comm.proj.bias"], np.float32(1.0))  # an updated row is flagged
+
+    r = g.sub()
+    members = r.op("SequenceAt", "rounds", "i")  # (s, groups of this round)
+    weights = [
+        r.weight("comm_lstm_w", w_ih),
+        r.weight("comm_lstm_r", w_hh),
+        r.weight("comm_lstm_b", b),
     ]
-    return nodes, weights
-
-
-def _round_loop_body(
-    model: MultiAgentQ, state: torch.Tensor, members: torch.Tensor
-) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
-    """Loop body for round ``i``: members[round_starts[i]:round_starts[i+1]] through the BiLSTM.
-
-    The weights are returned separately: they live in the outer graph (a body may read outer
-    values), so the file holds them once.
-    """
-    nodes, weights = _inline(
-        _trace(_Round(model), (state, members), ["enc", "members"], ["out"]),
-        "round",
-        {"enc": "enc_in", "members": "round_members", "out": "enc_next"},
-    )
-    i64 = TensorProto.INT64
-    head = [
-        helper.make_node("Constant", [], ["r_axis"], value_ints=[0]),
-        helper.make_node("Constant", [], ["r_one"], value_ints=[1]),
-        helper.make_node("Unsqueeze", ["i", "r_axis"], ["i_1d"]),
-        helper.make_node("Add", ["i_1d", "r_one"], ["next_1d"]),
-        helper.make_node("Gather", ["round_starts", "i_1d"], ["start"]),
-        helper.make_node("Gather", ["round_starts", "next_1d"], ["end"]),
-        helper.make_node("Slice", ["members", "start", "end", "r_axis"], ["round_members"]),
-        helper.make_node("Identity", ["cond_in"], ["cond_out"]),
-    ]
+    seq = r.op("Gather", "enc", members)
+    seq = r.op("LSTM", seq, *weights, hidden_size=width, direction="bidirectional")
+    seq = r.op("Transpose", seq, perm=[0, 2, 1, 3])  # (s, groups, direction, width)
+    seq = r.op("Reshape", seq, r.const(-1, 2 * width))
+    update = r.op("Gemm", seq, r.weight("comm_w_proj", w_proj), r.weight("comm_b_proj", b_proj))
+    slots = r.op("Reshape", members, r.const(-1, 1))
+    r.op("ScatterND", "enc", slots, update, out="enc_out")
     body = helper.make_graph(
-        head + nodes,
+        r.nodes,
         "comm_round",
-        [
-            _value("i", i64, []),
-            _value("cond_in", TensorProto.BOOL, []),
-            _value("enc_in", TensorProto.FLOAT, ["agents", model.spec.hidden]),
-        ],
-        [
-            _value("cond_out", TensorProto.BOOL, []),
-            _value("enc_next", TensorProto.FLOAT, ["agents", model.spec.hidden]),
-        ],
+        [_value("i", I64, []), _value("go", BOOL, []), _value("enc", F32, ["agents", hidden + 1])],
+        [_value("go", BOOL, []), _value("enc_out", F32, ["agents", hidden + 1])],
     )
-    return body, weights
+
+    enc = g.op("Pad", feats, g.const(0, 0, 0, 1))  # flag column: 0
+    g.op("SplitToSequence", "members", "round_groups", axis=1, out="rounds")
+    enc = g.op("Loop", g.op("Size", "round_groups"), "", enc, body=body)
+    flag = g.op("Slice", enc, g.const(hidden), g.const(hidden + 1), g.const(1))
+    return g.op("Mul", enc, flag)

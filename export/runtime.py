@@ -1,6 +1,7 @@
 """Run an exported policy with onnxruntime and numpy only: what the edge computer imports.
 
-:class:`PolicyGraph` is one call of the graph (inputs and outputs as in export/README.md).
+:class:`PolicyGraph` is one call of the graph (inputs and outputs as in export/README.md);
+:class:`BoundGraph` is the same graph bound to buffers for calls step after step.
 :class:`OnnxPolicy` is :class:`udan.learner.Actor` for one arena: it keeps each slot's recurrent
 state, forms groups every ``T`` steps with :mod:`udan.envs.grouping` (the same code training
 uses) and returns greedy actions. Nothing here imports torch.
@@ -8,6 +9,7 @@ uses) and returns greedy actions. Nothing here imports torch.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -37,13 +39,28 @@ def no_neighbours(n: int) -> np.ndarray:
 
 
 def round_inputs(groups: np.ndarray) -> dict[str, np.ndarray]:
-    """``members`` (G, s) in round order and ``round_starts`` (R + 1,) from groups in priority
-    order (:func:`udan.envs.grouping.form_groups`); no groups gives G = 0 and R = 0."""
+    """``members`` (s, G) and ``round_groups`` (R,) from groups (G, s) in priority order
+    (:func:`udan.envs.grouping.form_groups`): the groups as columns, leader first, listed round
+    after round, round r being the ``round_groups[r]`` columns after those of earlier rounds.
+    No groups gives G = 0 and R = 0."""
     if len(groups) == 0:
-        return {"members": np.zeros((0, 1), np.int64), "round_starts": np.zeros(1, np.int64)}
+        return {
+            "members": np.zeros((groups.shape[1], 0), np.int64),
+            "round_groups": np.zeros(0, np.int64),
+        }
     rounds = group_rounds(groups)
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rounds])]).astype(np.int64)
-    return {"members": groups[np.concatenate(rounds)].astype(np.int64), "round_starts": starts}
+    return {
+        "members": np.ascontiguousarray(groups[np.concatenate(rounds)].T, np.int64),
+        "round_groups": np.array([len(r) for r in rounds], np.int64),
+    }
+
+
+def forget(h: np.ndarray, c: np.ndarray, fresh: np.ndarray) -> None:
+    """Zero, in place, the state (1, N, hidden) of fresh slots (a new agent): its memory
+    starts empty."""
+    if fresh.any():
+        h[:, fresh] = 0.0
+        c[:, fresh] = 0.0
 
 
 class PolicyGraph:
@@ -61,6 +78,61 @@ class PolicyGraph:
         ignored so every algorithm can be driven alike)."""
         feeds = {name: feeds[name] for name in self.input_names}
         return dict(zip(self.outputs, self.session.run(self.outputs, feeds), strict=True))
+
+
+class BoundGraph:
+    """The graph bound to buffers of N slots, as a running edge calls it: a step copies its
+    observations into a bound buffer and runs.
+
+    Binding inputs anew costs onnxruntime about as much as a layer of these networks, so
+    nothing is rebound between group formations: two bindings take turns, each reading the
+    state (h, c) the other one wrote. ``q`` and ``action`` are overwritten by every call.
+    """
+
+    def __init__(self, graph: PolicyGraph, h: np.ndarray, c: np.ndarray) -> None:
+        n = h.shape[1]
+        self.graph = graph
+        self.obs = np.zeros((n, int(graph.metadata["obs_dim"])), np.float32)
+        self.states = [(h, c), (np.empty_like(h), np.empty_like(c))]
+        self.q = np.zeros((n, len(json.loads(graph.metadata["actions"]))), np.float32)
+        self.action = np.zeros(n, np.int64)
+        # The bindings point into these arrays: they live as long as this object.
+        self.inputs: dict[str, np.ndarray] = {"obs": self.obs}
+        self.outputs: dict[str, np.ndarray] = {"q": self.q, "action": self.action}
+        if graph.communicates:
+            self.inputs["neighbours"] = no_neighbours(n)
+            self.inputs.update(round_inputs(np.zeros((0, 0), np.int64)))
+            self.outputs["leader_logits"] = np.zeros(n, np.float32)
+        self.bindings = []
+        for turn in (0, 1):
+            binding = graph.session.io_binding()
+            (h_in, c_in), (h_out, c_out) = self.states[turn], self.states[1 - turn]
+            for name, array in {**self.inputs, "h": h_in, "c": c_in}.items():
+                binding.bind_cpu_input(name, array)
+            for name, array in {**self.outputs, "h_out": h_out, "c_out": c_out}.items():
+                binding.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(array))
+            self.bindings.append(binding)
+        self.turn = 0
+
+    @property
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(h, c), each (1, N, hidden): what the next call reads, the last call's output."""
+        return self.states[self.turn]
+
+    def bind_groups(self, groups: np.ndarray) -> None:
+        """Groups (G, s) in priority order for the calls from now on."""
+        rounds = round_inputs(groups)
+        self.inputs.update(rounds)
+        for binding in self.bindings:
+            for name, array in rounds.items():
+                binding.bind_cpu_input(name, array)
+
+    def run(self, obs: np.ndarray) -> np.ndarray:
+        """One graph call on ``obs`` (N, D); returns ``action`` (N,)."""
+        np.copyto(self.obs, obs)
+        self.graph.session.run_with_iobinding(self.bindings[self.turn])
+        self.turn = 1 - self.turn
+        return self.action
 
 
 class OnnxPolicy:
@@ -84,13 +156,22 @@ class OnnxPolicy:
 
     def reset(self, slots: int) -> None:
         """Forget every agent's memory and the groups; the next step forms groups."""
-        self.h = np.zeros((slots, self.hidden), np.float32)
-        self.c = np.zeros((slots, self.hidden), np.float32)
+        state = np.zeros((1, slots, self.hidden), np.float32)
+        self._steps = BoundGraph(self.graph, state, state.copy())
         self.groups = np.zeros((0, 0), np.int64)
-        self.rounds = round_inputs(self.groups)
         self.t = 0
         self.reform = False
         self.q: np.ndarray | None = None
+
+    @property
+    def h(self) -> np.ndarray:
+        """Each slot's LSTM state h (1, N, hidden) as the next step starts from it."""
+        return self._steps.state[0]
+
+    @property
+    def c(self) -> np.ndarray:
+        """Each slot's LSTM cell state c (1, N, hidden) as the next step starts from it."""
+        return self._steps.state[1]
 
     def act(
         self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray, fresh: np.ndarray
@@ -99,32 +180,29 @@ class OnnxPolicy:
         and ``fresh`` (N,) (slots whose agent is new: their memory starts from zero). A fleet
         that grew since the last step gets zero state for its new slots."""
         n = len(obs)
-        if n != len(self.h):
+        if n != self._steps.obs.shape[0]:
             self._resize(n)
-        feeds = {"obs": obs, "h": self.h, "c": self.c, "fresh": fresh}
+        h, c = self._steps.state
+        forget(h, c, fresh)
         if self.graph.communicates:
-            feeds["neighbours"] = no_neighbours(n)
             stale = len(self.groups) > 0 and not present[self.groups].all()
             if self.reform or self.t % self.interval == 0 or stale:
                 self.reform = False
                 table = neighbour_table(pos, present, self.neighbours)
-                no_groups = round_inputs(self.groups[:0])
-                logits = self.graph.run({**feeds, "neighbours": table, **no_groups})
+                feeds = {"obs": obs, "h": h, "c": c, "neighbours": table}
+                logits = self.graph.run({**feeds, **round_inputs(self.groups[:0])})
                 prob = 1.0 / (1.0 + np.exp(-logits["leader_logits"]))
                 self.groups = form_groups(pos, present, prob, self.k, self.threshold, near=table)
-                self.rounds = round_inputs(self.groups)
-            feeds.update(self.rounds)
-        out = self.graph.run(feeds)
-        self.h, self.c, self.q = out["h_out"], out["c_out"], out["q"]
+                self._steps.bind_groups(self.groups)
+        actions = self._steps.run(obs).copy()
+        self.q = self._steps.q.copy()
         self.t += 1
-        return out["action"]
+        return actions
 
     def _resize(self, n: int) -> None:
-        keep = min(n, len(self.h))
-        for name in ("h", "c"):
-            grown = np.zeros((n, self.hidden), np.float32)
-            grown[:keep] = getattr(self, name)[:keep]
-            setattr(self, name, grown)
+        keep = min(n, self.h.shape[1])
+        h, c = (np.zeros((1, n, self.hidden), np.float32) for _ in range(2))
+        h[:, :keep], c[:, :keep] = self.h[:, :keep], self.c[:, :keep]
+        self._steps = BoundGraph(self.graph, h, c)
         self.groups = np.zeros((0, 0), np.int64)  # they may name slots that are gone
-        self.rounds = round_inputs(self.groups)
         self.reform = True

@@ -1,10 +1,11 @@
 """Does an exported file compute what the checkpoint's torch model computes, at every size?
 
 Three checks, run on every export and by ``udan-export verify``: the ONNX checker with full
-shape inference, every dynamic axis symbolic in the saved file (an exporter that silently froze
-the agent or group count would pass a parity test at the traced size only), and onnxruntime vs
-torch over several consecutive steps of recurrent state at many fleet sizes, with random
-groupings that include bridging and lone agents.
+shape inference, every dynamic axis symbolic in the saved file (a graph with the agent or group
+count fixed would pass a parity test at that size only), and onnxruntime vs torch over several
+consecutive steps of recurrent state at many fleet sizes, with random groupings that include
+bridging and lone agents (the runtime zeroes a fresh slot's state before the graph, as
+:class:`export.runtime.OnnxPolicy` does).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import onnx
 import torch
 
 from export.graph import AXES
-from export.runtime import PolicyGraph, no_neighbours, round_inputs
+from export.runtime import PolicyGraph, forget, no_neighbours, round_inputs
 from udan.envs.grouping import neighbour_table
 from udan.learner import MultiAgentQ, merge_rounds
 
@@ -99,12 +100,12 @@ def torch_step(
     model: MultiAgentQ, feeds: dict[str, np.ndarray], groups: np.ndarray
 ) -> dict[str, np.ndarray]:
     """The reference: :meth:`udan.learner.Actor.act`'s computation for one arena, given groups."""
-    h, c = (torch.from_numpy(feeds[name])[None] for name in ("h", "c"))
+    h, c = (torch.from_numpy(feeds[name]) for name in ("h", "c"))
     feats, (h, c) = model.encoder(
         torch.from_numpy(feeds["obs"])[None], (h, c), torch.from_numpy(feeds["fresh"])[None]
     )
     feats = feats[0]
-    out = {"h_out": h[0].numpy(), "c_out": c[0].numpy()}
+    out = {"h_out": h.numpy(), "c_out": c.numpy()}
     rounds = []
     if model.spec.communicates:
         if feeds["neighbours"].shape[1]:
@@ -124,7 +125,7 @@ def parity(
     results = []
     for n in sizes:
         states = {
-            side: {name: np.zeros((n, spec.hidden), np.float32) for name in ("h", "c")}
+            side: {name: np.zeros((1, n, spec.hidden), np.float32) for name in ("h", "c")}
             for side in ("ort", "torch")
         }
         dq = dstate = dlogits = 0.0
@@ -138,6 +139,7 @@ def parity(
             neighbours = case["neighbours"] if scored else no_neighbours(n)
             base = {"obs": obs, "fresh": fresh, "neighbours": neighbours}
             base.update(round_inputs(case["groups"]))
+            forget(states["ort"]["h"], states["ort"]["c"], fresh)
             got = graph.run({**base, **states["ort"]})
             want = torch_step(model, {**base, **states["torch"]}, case["groups"])
             states["ort"] = {"h": got["h_out"], "c": got["c_out"]}
@@ -152,7 +154,7 @@ def parity(
             equal &= bool(np.array_equal(got["action"], want["action"]))
             counts = np.bincount(case["groups"].ravel(), minlength=n)
             groups += len(case["groups"])
-            rounds = max(rounds, len(base["round_starts"]) - 1)
+            rounds = max(rounds, len(base["round_groups"]))
             bridges += int((counts >= 2).sum())
             lone += int((case["present"] & (counts == 0)).sum())
         results.append(

@@ -20,7 +20,7 @@ from onnx import TensorProto, helper
 from export.cli import main, sha256
 from export.graph import build_graph
 from export.metadata import KEYS, MetadataError, build_metadata, check_metadata, obs_spec
-from export.runtime import OnnxPolicy, PolicyGraph, round_inputs
+from export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
 from export.verify import frozen_axes, verify
 from udan.checkpoint import load_model
 from udan.envs import make_vec
@@ -109,9 +109,8 @@ def test_reloading_the_file_gives_identical_outputs(udan_exported, udan_policy):
     pos = rng.integers(0, 9, (n, 2))
     feeds = {
         "obs": rng.random((n, model.spec.obs_dim), dtype=np.float32),
-        "h": rng.standard_normal((n, hidden), dtype=np.float32),
-        "c": rng.standard_normal((n, hidden), dtype=np.float32),
-        "fresh": np.array([1, 0, 0, 1, 0, 0, 0], bool),
+        "h": rng.standard_normal((1, n, hidden), dtype=np.float32),
+        "c": rng.standard_normal((1, n, hidden), dtype=np.float32),
         "neighbours": neighbour_table(pos, np.ones(n, bool), model.spec.attention_neighbours),
         **round_inputs(np.array([[0, 1, 2], [3, 2, 4]])),
     }
@@ -178,6 +177,25 @@ def test_onnx_policy_acts_exactly_like_the_torch_actor(checkpoints, tmp_path, al
     assert algo != "udan" or formed > 0
 
 
+def test_bound_calls_match_single_calls_step_after_step(udan_policy):
+    """BoundGraph's two bindings take turns on the state: the same outputs as one call each."""
+    graph = PolicyGraph(udan_policy)
+    n, hidden = 6, int(graph.metadata["hidden"])
+    rng = np.random.default_rng(2)
+    h, c = (rng.standard_normal((1, n, hidden), dtype=np.float32) for _ in range(2))
+    bound = BoundGraph(graph, h.copy(), c.copy())
+    groups = np.array([[0, 1, 2], [3, 2, 4]])
+    bound.bind_groups(groups)
+    for _ in range(3):
+        obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
+        feeds = {"obs": obs, "h": h, "c": c, "neighbours": no_neighbours(n)}
+        want = graph.run({**feeds, **round_inputs(groups)})
+        assert np.array_equal(bound.run(obs), want["action"])
+        assert np.array_equal(bound.q, want["q"])
+        h, c = want["h_out"], want["c_out"]
+        assert np.array_equal(bound.state[0], h) and np.array_equal(bound.state[1], c)
+
+
 def test_the_runtime_imports_and_acts_without_torch(udan_policy):
     code = f"""
 import sys
@@ -208,7 +226,7 @@ def test_the_policy_grows_with_the_fleet(udan_policy):
             rng.integers(0, 9, (n, 2)),
             np.ones(n, bool),
         )
-        assert actions.shape == (n,) and policy.h.shape == (n, policy.hidden)
+        assert actions.shape == (n,) and policy.h.shape == (1, n, policy.hidden)
 
 
 def test_export_writes_beside_the_checkpoint_and_verify_passes(checkpoints, capsys):
