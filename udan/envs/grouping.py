@@ -48,33 +48,43 @@ def _nearest_all_pairs(cells: np.ndarray, slots: np.ndarray, size: int) -> np.nd
 def _nearest_by_rings(
     cells: np.ndarray, slots: np.ndarray, size: int, shape: np.ndarray
 ) -> np.ndarray:
-    """Rings of growing Manhattan radius around every agent at once; a ring's agents in slot
-    order, so the result equals sorting by (distance, slot)."""
+    """Every cell within a Manhattan radius around every agent at once, keyed by (distance,
+    slot) and sorted, so the result equals sorting all pairs by (distance, slot); agents that
+    find fewer than ``size`` within the radius search again with a radius half as big again."""
     grid = np.full(tuple(shape), -1, dtype=np.int64)
     grid[cells[:, 0], cells[:, 1]] = slots
     found = np.full((len(slots), size), -1, dtype=np.int64)
-    found[:, 0] = slots
-    filled = np.ones(len(slots), dtype=np.int64)
+    scale = int(slots.max()) + 1
     big = np.iinfo(np.int64).max  # sorts empty cells after every slot
-    for radius in range(1, int(shape.sum())):
-        need = np.flatnonzero(filled < size)
-        if need.size == 0:
-            break
-        d_row = np.arange(-radius, radius + 1)
-        d_col = radius - np.abs(d_row)
-        ring = np.unique(
-            np.concatenate([np.stack([d_row, d_col], 1), np.stack([d_row, -d_col], 1)]), axis=0
-        )
-        r = cells[need, None, 0] + ring[None, :, 0]
-        c = cells[need, None, 1] + ring[None, :, 1]
-        inside = (r >= 0) & (r < shape[0]) & (c >= 0) & (c < shape[1])
-        hits = np.where(inside, grid[r.clip(0, shape[0] - 1), c.clip(0, shape[1] - 1)], -1)
-        hits = np.sort(np.where(hits >= 0, hits, big), axis=1)
-        take = np.minimum((hits != big).sum(1), size - filled[need])  # from this ring
-        rows, col = np.nonzero(np.arange(hits.shape[1])[None, :] < take[:, None])
-        found[need[rows], filled[need[rows]] + col] = hits[rows, col]
-        filled[need] += take
+    # a diamond that holds about twice the agents needed, at the fleet's mean density
+    density = len(slots) / float(shape[0] * shape[1])
+    radius = max(1, int(np.ceil(np.sqrt(size / density))))
+    need = np.arange(len(slots))
+    while need.size:
+        padded = np.pad(grid, radius, constant_values=-1)  # off the grid: no agent
+        d_row, d_col = _diamond(radius)
+        width = padded.shape[1]
+        origin = (cells[need, 0] + radius) * width + cells[need, 1] + radius
+        hits = padded.ravel()[origin[:, None] + (d_row * width + d_col)[None, :]]
+        dist = np.abs(d_row) + np.abs(d_col)
+        keys = np.where(hits >= 0, dist * scale + hits, big)
+        if keys.shape[1] > size:
+            keys = np.partition(keys, size - 1, axis=1)[:, :size]
+        keys.sort(axis=1)
+        complete = (keys[:, -1] != big) | (radius >= shape.sum())
+        done = need[complete]
+        found[done] = np.where(keys[complete] != big, keys[complete] % scale, -1)
+        need = need[~complete]
+        radius += max(1, radius // 2)
     return found
+
+
+def _diamond(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets of every cell within Manhattan ``radius`` of the origin."""
+    d = np.arange(-radius, radius + 1)
+    rows, cols = np.meshgrid(d, d, indexing="ij")
+    keep = np.abs(rows) + np.abs(cols) <= radius
+    return rows[keep], cols[keep]
 
 
 def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
