@@ -455,9 +455,8 @@ async def test_udp_dispatch_to_a_mock_process_on_time(
     assert on_time >= 0.98 * len(commands)  # a quiet machine makes 100 %; this one is shared
     for report in reports:
         for r in report.cars.values():
-            if r.acked:
-                assert r.car_rx_us <= r.car_deadline_us
-                assert r.car_received_ns - report.decision_ns < 10_000_000
+            if r.result == "accepted":  # a duplicate's ack has the copy's receive time
+                assert r.car_rx_us <= r.car_deadline_us  # exact: both in the car's clock
     counters = (await mock.ask({"op": "counters"}))["cars"]
     executed = sum(counters[str(c)]["executed"] for c in (1, 2, 3))
     assert on_time <= executed <= len(commands)
@@ -495,7 +494,7 @@ async def test_udp_dispatch_with_10_percent_loss(udp_fleet: tuple[CarLink, MockP
     assert on_time + missed + sum(r.not_ready for r in reports) == len(commands)
     assert on_time >= 0.9 * len(commands)
     for r in commands:
-        if r.acked:
+        if r.result == "accepted":  # a duplicate's ack carries the copy's later receive time
             assert r.car_rx_us <= r.car_deadline_us  # exact: both in the car's clock
     counters = (await mock.ask({"op": "counters"}))["cars"]
     for c in (1, 2, 3):
