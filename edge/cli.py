@@ -16,26 +16,26 @@ import asyncio
 import contextlib
 import json
 import os
-import secrets
 import signal
 import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from edge.camera import CameraError, FrameGrabber, open_camera
 from edge.decide import DecisionStep, TaskError, task_of
 from edge.fleet import Fleet
-from edge.fleetfile import FleetFileError, load_fleet
+from edge.fleetfile import FleetFileError, load_fleet, write_fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.runtime import LoopConfig, Runtime, WorldError
 from edge.telemetry import Telemetry
-from edge.transport import TransportError, open_transport
+from edge.transport import TransportError, free_udp_port, open_transport
 from edge.vision import Vision, VisionError
 from export.metadata import MetadataError, obs_spec
+from udan.envs.errors import OneLineParser
 
 PROG = "udan-edge"
 BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
@@ -46,14 +46,8 @@ class UsageError(ValueError):
     """A bad option or input, reported in one line."""
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        print(f"{PROG}: error: {message}", file=sys.stderr)
-        sys.exit(2)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     src = p.add_argument_group("what to drive")
     src.add_argument("--sim", action="store_true", help="virtual camera + mock fleet (HIL world)")
     src.add_argument("--camera", help="/dev/videoN, an index, a video file, a folder, virtual://N")
@@ -156,23 +150,6 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         telemetry.close()
 
 
-def _write_sim_fleet(folder: Path, cars: int) -> Path:
-    """A fleet file for the mock cars: fresh random keys; no port (the world binds any free one,
-    the edge learns it from the car's authenticated JOIN)."""
-    lines = []
-    for car in range(1, cars + 1):
-        lines += [
-            "[[car]]",
-            f"id = {car}",
-            f"marker = {SIM_MARKER_BASE + car}",
-            f'key = "{secrets.token_hex(32)}"',
-            "",
-        ]
-    path = folder / "fleet.toml"
-    path.write_text("\n".join(lines), encoding="utf-8")
-    return path
-
-
 def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
     """``python -m hil.world`` as its own process; returns it and its ready line."""
     cmd = [
@@ -198,8 +175,8 @@ async def _sim(args: argparse.Namespace) -> dict[str, Any]:
         raise UsageError(f"--cars {args.cars}: the arena plays 1-5 cars")
     args.model = args.model or BUNDLED_MODEL
     with tempfile.TemporaryDirectory(prefix="udan-sim-") as tmp:
-        args.fleet = _write_sim_fleet(Path(tmp), args.cars)
-        port = _free_udp_port()
+        args.fleet = write_fleet(Path(tmp) / "fleet.toml", args.cars, SIM_MARKER_BASE)
+        port = free_udp_port()
         args.listen = f"127.0.0.1:{port}"
         camera = f"udan-sim-{os.getpid()}"
         args.camera = f"virtual://{camera}"
@@ -218,14 +195,6 @@ async def _sim(args: argparse.Namespace) -> dict[str, Any]:
         if world is not None:
             report["world"] = world
         return report
-
-
-def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _last_json(text: str | None) -> dict[str, Any] | None:

@@ -14,6 +14,7 @@ arrives: the UDP transport answers cars where their frames come from.
 from __future__ import annotations
 
 import re
+import secrets
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -168,3 +169,17 @@ def load_fleet(path: str | Path) -> list[CarEntry]:
         return parse_fleet(doc, path.parent)
     except FleetFileError as err:
         raise FleetFileError(f"fleet file {path}: {err}") from None
+
+
+def write_fleet(path: Path, cars: int, marker_base: int = 10) -> Path:
+    """A fleet file for cars 1..``cars`` (markers ``marker_base`` + id) with fresh random keys
+    and no address: the stand-in cars bind any free port and the edge learns it from their
+    authenticated JOINs (``--sim``, the HIL harness, tests)."""
+    path.write_text(
+        "".join(
+            f'[[car]]\nid = {c}\nmarker = {marker_base + c}\nkey = "{secrets.token_hex(32)}"\n\n'
+            for c in range(1, cars + 1)
+        ),
+        encoding="utf-8",
+    )
+    return path

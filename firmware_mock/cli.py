@@ -20,24 +20,18 @@ import signal
 import socket
 import sys
 from collections.abc import Sequence
-from typing import Any, NoReturn
+from typing import Any
 
 from firmware_mock.firmware import DEFAULT_TIMING, CarTiming
 from firmware_mock.fleet import FleetError, load_fleet
 from firmware_mock.udp import MockCar
+from udan.envs.errors import OneLineParser
 
 PROG = "udan-firmware-mock"
 
 
 class UsageError(ValueError):
     """A command-line value that cannot be used."""
-
-
-class _OneLineParser(argparse.ArgumentParser):
-    """argparse, but a bad option is one line on stderr (no usage block), still exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{PROG}: error: {message}\n")
 
 
 def _positive_ms(text: str) -> float:
@@ -76,7 +70,7 @@ async def _edge_address(text: str) -> tuple[str, int]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
+    p = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
     p.add_argument("--keys", required=True, help="fleet.toml with one [[car]] table per car")
     p.add_argument("--cars", type=int, help="run the first N cars of the fleet (default: all)")
     p.add_argument("--base-port", type=int, help="port = base + car id when a car has none; 0: any")

@@ -24,7 +24,6 @@ import contextlib
 import json
 import os
 import random
-import secrets
 import signal
 import subprocess
 import sys
@@ -32,16 +31,18 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
 from edge import protocol as ep
+from edge.fleetfile import write_fleet
 from edge.runtime import world_request
+from edge.transport import free_udp_port
 from export.runtime import OnnxPolicy
 from hil.faults import FaultPlan, FaultSpecError, parse_faults
 from hil.world import Episode, episode_arena
-from udan.envs.errors import EnvConfigError, parse_range
+from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 
 PROG = "udan-hil"
 TASKS = ("find_water",)
@@ -52,14 +53,8 @@ class HarnessError(RuntimeError):
     """The loop could not be run; one line."""
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        print(f"{PROG}: error: {message}", file=sys.stderr)
-        sys.exit(2)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run the closed loop and write the report")
     run.add_argument("--task", default="find_water", help=f"one of {', '.join(TASKS)}")
@@ -79,25 +74,6 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
     return p
-
-
-def _fleet_file(folder: Path, cars: int) -> Path:
-    """Mock cars 1..cars with fresh keys; no ports (bound freely, learnt from their JOINs)."""
-    lines = []
-    for car in range(1, cars + 1):
-        lines += ["[[car]]", f"id = {car}", f"marker = {MARKER_BASE + car}"]
-        lines += [f'key = "{secrets.token_hex(32)}"', ""]
-    path = folder / "fleet.toml"
-    path.write_text("\n".join(lines), encoding="utf-8")
-    return path
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def forged_datagrams(count: int, car_ids: Sequence[int], seed: int) -> list[tuple[int, bytes]]:
@@ -156,9 +132,9 @@ class Loop:
         self.procs: dict[str, subprocess.Popen] = {}
         self.tmp = Path(tempfile.mkdtemp(prefix="udan-hil-"))
         self.cars = parse_range(args.cars, "cars")
-        self.fleet = _fleet_file(self.tmp, self.cars[1])
+        self.fleet = write_fleet(self.tmp / "fleet.toml", self.cars[1], MARKER_BASE)
         self.camera = f"udan-hil-{os.getpid()}"
-        self.edge_port = _free_port()
+        self.edge_port = free_udp_port()
         self.events_done: list[dict[str, Any]] = []
         self.car_addresses: dict[int, tuple[str, int]] = {}
 

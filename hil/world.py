@@ -32,7 +32,7 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +43,7 @@ from firmware_mock.udp import MockCar
 from hil.render import CameraModel, Renderer
 from hil.vcam import VirtualCamera
 from udan.envs.arena import ArenaBatch, ArenaConfig
-from udan.envs.errors import EnvConfigError, parse_range
+from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
 
 PROG = "hil-world"
@@ -383,14 +383,8 @@ class WorldServer:
         }
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        print(f"{PROG}: error: {message}", file=sys.stderr)
-        sys.exit(2)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _OneLineParser(prog="python -m hil.world", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="python -m hil.world", description=__doc__.split("\n\n")[0])
     p.add_argument("--fleet", type=Path, required=True, help="fleet.toml of the mock cars")
     p.add_argument("--edge", required=True, help="the edge's HOST:PORT (cars JOIN there)")
     p.add_argument("--camera-name", required=True, help="shared-memory name of the camera")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import secrets
 import signal
 import socket
 import subprocess
@@ -13,18 +12,11 @@ from pathlib import Path
 
 import pytest
 
+from edge.fleetfile import write_fleet
+from edge.transport import free_udp_port
+
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
 MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
-
-
-def _fleet(folder: Path, cars: int) -> Path:
-    text = "".join(
-        f'[[car]]\nid = {c}\nmarker = {10 + c}\nkey = "{secrets.token_hex(32)}"\n\n'
-        for c in range(1, cars + 1)
-    )
-    path = folder / "fleet.toml"
-    path.write_text(text)
-    return path
 
 
 def _edge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -33,7 +25,7 @@ def _edge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
 
 @pytest.fixture
 def fleet(tmp_path: Path) -> Path:
-    return _fleet(tmp_path, 2)
+    return write_fleet(tmp_path / "fleet.toml", 2)
 
 
 @pytest.mark.parametrize(
@@ -78,12 +70,6 @@ def test_bad_input_is_one_line_and_exit_2(
     assert "Traceback" not in done.stderr
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _ask(port: int, request: dict) -> dict:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.settimeout(5)
@@ -93,7 +79,7 @@ def _ask(port: int, request: dict) -> dict:
 
 def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Path) -> None:
     """World and edge as separate processes; SIGTERM to the edge latches every car's estop."""
-    edge_port, camera = _free_port(), f"udan-test-{time.monotonic_ns()}"
+    edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
     world = subprocess.Popen(
         [
             sys.executable, "-m", "hil.world", "--fleet", str(fleet),

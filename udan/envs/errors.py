@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
+from typing import NoReturn
+
 
 class EnvConfigError(ValueError):
     """An environment request that cannot be honoured (bad range, too many agents for the map)."""
@@ -34,3 +37,11 @@ def parse_range(value: int | str | tuple[int, int] | list[int], what: str) -> tu
     if hi < lo:
         raise EnvConfigError(f"{what}: inverted range {lo}-{hi} (empty)")
     return lo, hi
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a bad option is one line on stderr (no usage block), still exit code 2:
+    the command-line convention of every tool of the project (edge, HIL, mock firmware)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
