@@ -44,15 +44,17 @@ def filter_moves(
     -1: no expectation); ``others`` (M, 2), cells held by things the edge does not drive."""
     pos = np.asarray(pos, dtype=np.int64).reshape(-1, 2)
     actions = np.asarray(actions, dtype=np.int64).reshape(-1)
-    passable = layout == FREE
-    if others is not None and len(others):
-        passable = passable.copy()
-        passable[others[:, 0], others[:, 1]] = False
     stopped = np.zeros(len(pos), dtype=bool)
     if expected is not None:
         known = expected[:, 0] >= 0
         stopped = known & (expected != pos).any(axis=1)
     moving = np.where(stopped, WAIT, actions)
+    if not (moving != WAIT).any():  # nothing moves: nothing can conflict
+        return Filtered(np.where(stopped, STOP, moving), np.zeros(len(pos), bool), stopped)
+    passable = layout == FREE
+    if others is not None and len(others):
+        others = others[(others >= 0).all(1) & (others < layout.shape).all(1)]
+        passable[others[:, 0], others[:, 1]] = False
     dest = resolve_moves(pos[None], moving[None], passable[None], np.ones((1, len(pos)), bool))[0]
     wanted = pos + ACTION_DELTAS[moving]
     blocked = (moving != WAIT) & (dest != wanted).any(axis=1)
