@@ -1,0 +1,48 @@
+"""Edge telemetry: constant-memory histograms that agree with exact percentiles, the report."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import numpy as np
+
+from edge.telemetry import Histogram, Telemetry
+
+
+def test_histogram_percentiles_within_a_bin_of_the_exact_ones() -> None:
+    rng = np.random.default_rng(0)
+    samples = (rng.lognormal(mean=13.5, sigma=0.8, size=20_000)).astype(np.int64)  # ~1 ms
+    hist = Histogram()
+    for ns in samples:
+        hist.add(int(ns))
+    for q in (50, 90, 99):
+        exact = np.percentile(samples, q) / 1e6
+        assert abs(hist.percentile(q) - exact) / exact < 0.04  # one bin is 3.7 % wide
+    assert hist.summary()["max_ms"] == round(samples.max() / 1e6, 4)
+    assert sum(hist.summary()["bin_counts"]) == len(samples)
+
+
+def test_report_counts_spans_and_json_lines(tmp_path) -> None:
+    stream = io.StringIO()
+    tel = Telemetry(tmp_path / "t.jsonl", live=True, stream=stream, live_period_s=0.0)
+    tel.frame(0, captured_ns=1_000_000, state_ns=4_000_000, seen=2, dropped=0)
+    record = {
+        "t_ns": time.monotonic_ns(), "cars": 2, "state_to_commands_ns": 300_000,
+        "commands_to_received_ns": 2_000_000, "decision_to_acked_ns": 3_000_000,
+        "on_time": 1, "missed": 1, "late_sends": 0, "outcomes": {"1": "on_time", "2": "missed"},
+    }  # fmt: skip
+    tel.step(record)
+    tel.episode({"index": 0, "score": 40.0, "returns": {"1": 40.0}})
+    report = tel.report()
+    tel.close()
+    assert report["counts"]["steps"] == 1 and report["counts"]["missed"] == 1
+    assert report["on_time_share"] == 0.5
+    assert report["per_car"] == {"1": {"on_time": 1}, "2": {"missed": 1}}
+    assert report["spans"]["frame_to_state"]["count"] == 1
+    assert abs(report["spans"]["state_to_commands"]["p50_ms"] - 0.3) < 0.02
+    kinds = [json.loads(line)["kind"] for line in (tmp_path / "t.jsonl").read_text().splitlines()]
+    assert kinds == ["frame", "step", "episode"]
+    assert "cars 2" in stream.getvalue() and "missed 1" in stream.getvalue()
+    assert "1 episodes, mean score 40.00" in tel.final_line()
