@@ -268,6 +268,9 @@ class Runtime:
                 "commands_to_received_ns": max(received) - decided_ns
                 if len(received) == len(commands)
                 else None,
+                "frame_to_received_ns": max(received) - scene.t_capture_ns
+                if len(received) == len(commands)
+                else None,
                 "decision_to_acked_ns": max(acked) - decided_ns
                 if len(acked) == len(commands)
                 else None,

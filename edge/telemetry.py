@@ -7,7 +7,9 @@ come back converted to it, and on one machine every process shares it):
 - ``state_to_commands``: cells known -> every command of the step ready (masking, grouping,
   inference, safety);
 - ``commands_to_received``: decision -> the last car of the step received its command (from
-  the acks' receive times); ``decision_to_acked`` is the same until the last ack is back.
+  the acks' receive times); ``decision_to_acked`` is the same until the last ack is back;
+- ``frame_to_received``: capture of the frame a step decided on -> the last car received its
+  command: the whole loop from the camera to the wheels.
 
 The runtime runs for hours, so totals are fixed-size log histograms (about 1.6 % bin width),
 not growing lists; the live line uses the last few hundred samples. Every record also goes,
@@ -26,7 +28,13 @@ from typing import IO, Any
 
 import numpy as np
 
-SPANS = ("frame_to_state", "state_to_commands", "commands_to_received", "decision_to_acked")
+SPANS = (
+    "frame_to_state",
+    "state_to_commands",
+    "commands_to_received",
+    "decision_to_acked",
+    "frame_to_received",
+)
 _LOG_MIN_NS, _BINS_PER_DECADE, _DECADES = 1_000, 64, 8  # 1 us .. 100 s
 
 

@@ -21,6 +21,7 @@ SPAN_TITLES = {
     "state_to_commands": "state → commands",
     "commands_to_received": "commands → received by car",
     "decision_to_acked": "decision → all acked",
+    "frame_to_received": "frame → all commands received",
 }
 
 
