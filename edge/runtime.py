@@ -120,7 +120,6 @@ class Runtime:
         self.last_cell: dict[int, tuple[int, int]] = {}
         self.last_command: dict[int, int] = {}
         self._vision_pool = ThreadPoolExecutor(1, thread_name_prefix="vision")
-        self._scene: Scene | None = None
         self._not_before_ns = 0
 
     # ------------------------------------------------------------------ the job
@@ -200,8 +199,14 @@ class Runtime:
         for car in change.left:
             self.telemetry.event("fleet_leave", car=car)
             self.last_command.pop(car, None)
-        self._scene = scene
         self.telemetry.frame(frame.index, frame.t_capture_ns, now, len(seen), self.grabber.dropped)
+
+    def _all_seen(self, scene: Scene) -> bool:
+        """Every car of the fleet is on the grid in this frame."""
+        return all(
+            (s := scene.cars.get(self.fleet.markers[c])) is not None and s.inside
+            for c in self.fleet.slot
+        )
 
     def _others(self, scene: Scene) -> list[tuple[int, int]]:
         """Cells of markers on the grid that are not cars of the fleet: they block moves."""
@@ -227,6 +232,8 @@ class Runtime:
             if not moving and finished_at is None:
                 finished_at = now
             fresh_view = finished_at is not None and scene.t_capture_ns >= finished_at
+            # a car the camera missed in this frame would be judged on a stale cell: wait
+            fresh_view = fresh_view and self._all_seen(scene)
             timed_out = now - last_decision > self.config.step_timeout_s * 1e9
             if not (fresh_view or timed_out):
                 continue
@@ -335,14 +342,19 @@ class Runtime:
         return False
 
     async def _settle_last_step(self) -> None:
-        """Wait for the last moves to end, then credit their rewards from a fresh frame."""
+        """Wait for the last moves to end, then credit their rewards from a fresh frame that
+        shows every car."""
         deadline = time.monotonic_ns() + int(self.config.step_timeout_s * 1e9)
         while not self.stop.is_set() and time.monotonic_ns() < deadline:
             if all(self.link.move_finished(c) for c in self.fleet.slot):
                 break
             await asyncio.sleep(0.002)
         self._not_before_ns = time.monotonic_ns()
-        if await self._next_scene() is not None and self._scene is not None:
-            slots = dict(self.fleet.slot)
-            cells = {c: self.last_cell[c] for c in slots}
-            self.decide.settle(slots, cells, self._scene.cells)
+        deadline += int(self.config.step_timeout_s * 1e9)
+        while not self.stop.is_set() and time.monotonic_ns() < deadline:
+            scene = await self._next_scene()
+            if scene is not None and self._all_seen(scene):
+                slots = dict(self.fleet.slot)
+                cells = {c: self.last_cell[c] for c in slots}
+                self.decide.settle(slots, cells, scene.cells)
+                return

@@ -409,7 +409,7 @@ class Vision:
             cx, cy, side, length = tr.shape
             vx, vy = tr.velocity
             half = (1.3 * side + math.hypot(vx, vy) * gap + 8) * (1 + 0.5 * tr.misses)
-            if marker == TARGET_ID:
+            if marker == TARGET_ID or tr.misses:  # a hop, or a car faster than its velocity
                 half += self._target_jump * side
             wanted.append((length, marker, cx + vx * gap, cy + vy * gap, half))
         wanted.sort()
