@@ -66,6 +66,12 @@ class LoopConfig:
     """Decisions per episode (the arena's episode length)."""
     join_timeout_s: float = 10.0
     """Longest an episode waits for its cars to be in the fleet before it starts."""
+    unseen_grace_s: float = 0.1
+    """Longest a step waits for a car the camera missed (then it is stopped for the step)."""
+
+    @property
+    def unseen_grace_ns(self) -> int:
+        return int(self.unseen_grace_s * 1e9)
 
 
 async def world_request(
@@ -232,8 +238,10 @@ class Runtime:
             if not moving and finished_at is None:
                 finished_at = now
             fresh_view = finished_at is not None and scene.t_capture_ns >= finished_at
-            # a car the camera missed in this frame would be judged on a stale cell: wait
-            fresh_view = fresh_view and self._all_seen(scene)
+            # a car the camera missed in this frame would be judged on a stale cell (and stopped
+            # for the step): wait a few frames for it, not longer (it may have left the arena)
+            waited = finished_at is not None and now - finished_at > self.config.unseen_grace_ns
+            fresh_view = fresh_view and (self._all_seen(scene) or waited)
             timed_out = now - last_decision > self.config.step_timeout_s * 1e9
             if not (fresh_view or timed_out):
                 continue
