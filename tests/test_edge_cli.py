@@ -121,3 +121,19 @@ def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Pat
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(timeout=20)
+
+
+def test_sim_runs_the_whole_loop_and_reports(tmp_path: Path) -> None:
+    """The demo's command at a small size: world and edge processes, episodes, a report."""
+    report = tmp_path / "report.json"
+    done = _edge(
+        "--sim", "--cars", "2", "--obstacles", "0-1", "--duration", "10",
+        "--cell-time-ms", "60", "--report", str(report), "--quiet", timeout=90,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    r = json.loads(report.read_text())
+    assert r["counts"]["steps"] > 20 and r["counts"]["late_executions"] == 0
+    assert r["episodes"] and all(e["steps"] == 50 for e in r["episodes"])
+    assert r["counts"]["estop"] == 1
+    assert r["world"]["world"]["collisions"] == 0
+    assert "steps" in done.stdout and str(report) in done.stdout
