@@ -1,4 +1,4 @@
-"""``udan-edge``: drive a fleet from a camera with an exported policy.
+"""udan-edge: drive a fleet from a camera with an exported policy.
 
     udan-edge --camera /dev/video0 --model policy.onnx --fleet fleet.toml [--transport udp]
     udan-edge --sim [--cars 5] [--duration 30]      # virtual camera + mock fleet, bundled policy

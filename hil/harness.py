@@ -1,4 +1,4 @@
-"""``udan-hil run``: the closed loop, every part its own process, and what it measured.
+"""udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
         --model models/find_water/policy.onnx [--faults loss=0.1,jitter=3ms] --report out/hil
