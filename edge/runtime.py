@@ -10,8 +10,9 @@ move finished (so the camera shows where the moves ended), or when the step peri
 leave at once, each valid until the decision + 10 ms.
 
 Episodes (HIL and ``--sim``): with a world control address the runtime asks the world for each
-episode's layout, runs ``episode_steps`` decisions, lets the last moves finish, credits the last
-step's rewards from one more frame, and records the returns. Without one it drives the cars for
+episode's layout, waits until the episode's cars are in the fleet and the vision has swept the
+whole new layout once, runs ``episode_steps`` decisions, lets the last moves finish, credits the
+last step's rewards from one more frame, and records the returns. Without one it drives the cars for
 as long as it runs.
 
 Whatever ends the run — its duration, Ctrl-C, SIGTERM, the end of a video, or an exception — the
@@ -341,11 +342,14 @@ class Runtime:
             index += 1
 
     async def _await_fleet(self, cars: set[int]) -> bool:
-        """Frames until exactly the episode's cars are in the fleet (joined, seen)."""
+        """Frames until exactly the episode's cars are in the fleet (joined, seen) and the
+        vision has swept the whole image since the layout changed (its obstacle and water
+        markers are read by the sweep, a tile per frame)."""
         deadline = time.monotonic() + self.config.join_timeout_s
+        frames = 0
         while not self.stop.is_set() and time.monotonic() < deadline:
-            await self._next_scene()
-            if set(self.fleet.slot) == cars:
+            frames += await self._next_scene() is not None
+            if set(self.fleet.slot) == cars and frames > self.vision.sweep_frames:
                 return True
         return False
 

@@ -271,6 +271,12 @@ class Vision:
         self._tile = 0
 
     @property
+    def sweep_frames(self) -> int:
+        """Frames one sweep of the whole image takes: a layout that changed is fully read after
+        this many frames (cars, tracked, are found sooner)."""
+        return self._sweep_tiles[0] * self._sweep_tiles[1]
+
+    @property
     def calibrated(self) -> bool:
         return self._homography is not None
 
