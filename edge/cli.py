@@ -40,7 +40,6 @@ from udan.envs.errors import OneLineParser
 PROG = "udan-edge"
 BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
 SIM_MARKER_BASE = 10
-GIL_SWITCH_S = 0.0005
 
 
 class UsageError(ValueError):
@@ -219,9 +218,6 @@ def _event_loop_runner() -> Any:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
     args = _parser().parse_args(argv)
-    # capture and vision threads hold the GIL in bursts; the default 5 ms hand-over would eat
-    # half of a 10 ms dispatch deadline
-    sys.setswitchinterval(GIL_SWITCH_S)
     try:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")

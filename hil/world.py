@@ -407,8 +407,6 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: serve until SIGTERM, then print the final counters as one JSON line."""
     args = _parser().parse_args(argv)
-    # the renderer thread holds the GIL in bursts; the cars' loop must answer within 1-2 ms
-    sys.setswitchinterval(0.0005)
     try:
         server = WorldServer(args)
         summary = asyncio.run(server.run())
