@@ -32,7 +32,7 @@ from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.runtime import LoopConfig, Runtime, WorldError
 from edge.telemetry import Telemetry
-from edge.transport import TransportError, free_udp_port, open_transport
+from edge.transport import TransportError, free_udp_port, host_port, open_transport
 from edge.vision import Vision, VisionError
 from export.metadata import MetadataError, obs_spec
 from udan.envs.errors import OneLineParser
@@ -78,13 +78,6 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
     sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
-
-
-def _host_port(text: str, what: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit() or not 0 <= int(port) < 65536:
-        raise UsageError(f"{what} {text!r} is not HOST:PORT")
-    return host, int(port)
 
 
 def _writable(path: Path | None, what: str) -> None:
@@ -228,7 +221,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name in ("camera", "model", "fleet"):
                 if getattr(args, name) is None:
                     raise UsageError(f"--{name} is required (or use --sim)")
-            world = _host_port(args.world, "--world") if args.world else None
+            world = host_port(args.world, "--world") if args.world else None
             runner = _drive(args, world)
         report = _event_loop_runner()(runner)
     except (

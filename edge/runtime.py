@@ -126,6 +126,7 @@ class Runtime:
         self.stop = asyncio.Event()
         self.last_cell: dict[int, tuple[int, int]] = {}
         self.last_command: dict[int, int] = {}
+        self._car_of_marker = {m: c for c, m in fleet.markers.items()}
         self._vision_pool = ThreadPoolExecutor(1, thread_name_prefix="vision")
         self._not_before_ns = 0
 
@@ -194,9 +195,8 @@ class Runtime:
 
     def _fold(self, scene: Scene, frame: Frame, now: int) -> None:
         """A scene into the fleet and the last known cells; telemetry of the frame."""
-        by_marker = {self.fleet.markers[c]: c for c in self.fleet.markers}
         for marker, sighting in scene.cars.items():
-            car = by_marker.get(marker)
+            car = self._car_of_marker.get(marker)
             if car is not None and sighting.inside:
                 self.last_cell[car] = sighting.cell
         seen = [m for m, s in scene.cars.items() if s.inside]

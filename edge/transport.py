@@ -118,7 +118,8 @@ def free_udp_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def _host_port(text: str, what: str) -> tuple[str, int]:
+def host_port(text: str, what: str) -> tuple[str, int]:
+    """``HOST:PORT`` -> (host, port); a one-line ``TransportError`` otherwise."""
     host, sep, port = text.rpartition(":")
     if not sep or not host or not port.isdigit() or int(port) > 65535:
         raise TransportError(f"{what} must be HOST:PORT, got {text!r}")
@@ -143,7 +144,7 @@ class UdpTransport(Transport):
 
     def __init__(self, cars: Sequence[CarEntry], *, listen: str = "0.0.0.0:9000") -> None:
         super().__init__(cars)
-        self.listen = _host_port(listen, "listen address")
+        self.listen = host_port(listen, "listen address")
         self.address: tuple[str, int] | None = None
         self._routes = {c.car_id: c.address for c in cars if c.address is not None}
         self._endpoint: asyncio.DatagramTransport | None = None

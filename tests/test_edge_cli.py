@@ -39,6 +39,7 @@ def fleet(tmp_path: Path) -> Path:
         ("bad_fleet", "fleet"),
         ("unknown_transport", "transport"),
         ("report_folder", "does not exist"),
+        ("bad_world", "--world must be HOST:PORT"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(
@@ -60,6 +61,7 @@ def test_bad_input_is_one_line_and_exit_2(
         "bad_fleet": {"--fleet": str(bad_fleet)},
         "unknown_transport": {"--transport": "carrier-pigeon"},
         "report_folder": {"--report": str(tmp_path / "no" / "such" / "r.json")},
+        "bad_world": {"--world": "nohost"},
     }[case]
     opts = {**base, **change}
     argv = [x for k, v in opts.items() if v is not None for x in (k, v)]
