@@ -1,8 +1,9 @@
 """The simulated arena the mock cars drive in, seen by the virtual camera: ``python -m hil.world``.
 
-One process holds the world, every mock car of the fleet (each a real UDP socket, ESP8266 mock,
-pty serial line and motor controller: ``firmware_mock.udp.MockCar``) and the virtual camera,
-which renders the world at 40 FPS from its own thread into shared memory (``virtual://NAME``).
+One process holds the world and every mock car of the fleet (each a real UDP socket, ESP8266
+mock, pty serial line and motor controller: ``firmware_mock.udp.MockCar``); it starts the virtual
+camera as a process of its own, which renders a mirror of the world at 40 FPS into shared memory
+(``virtual://NAME``).
 The edge runs as a separate process and sees none of this except camera frames and UDP.
 
 Where moves end is decided here (``HilWorld``, the firmware's ``World``): a car's move ends on
@@ -22,15 +23,19 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import itertools
 import json
+import multiprocessing
+import os
 import signal
 import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +54,8 @@ from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
 PROG = "hil-world"
 Cell = tuple[int, int]
 _KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+#: A world for the camera: layout, car cells, moves in progress (from, to, start ns).
+Scene = tuple[np.ndarray, dict[int, Cell], dict[int, tuple[Cell, Cell, int]]]
 
 
 @dataclass(frozen=True)
@@ -105,7 +112,25 @@ class HilWorld:
         self.pose: dict[int, Cell] = {}
         self.motion: dict[int, tuple[Cell, Cell, int]] = {}
         self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0}
+        self.listener: Callable[[Scene], None] | None = None
+        """Called with the new :meth:`scene` after every change (the camera process's mirror)."""
         self._lock = threading.Lock()
+
+    def scene(self) -> Scene:
+        """What the camera needs to draw any instant until the next change: the layout, every
+        car's cell, and the moves in progress (from, to, start time)."""
+        with self._lock:
+            return self.layout.copy(), dict(self.pose), dict(self.motion)
+
+    def restore(self, scene: Scene) -> None:
+        """Take over ``scene`` (a mirror of another process's world)."""
+        layout, pose, motion = scene
+        with self._lock:
+            self.layout, self.pose, self.motion = layout, pose, motion
+
+    def _changed(self) -> None:
+        if self.listener is not None:
+            self.listener(self.scene())
 
     # -- the firmware's World --------------------------------------------------------------
     def begin(self, car_id: int, pose: Cell, action: int) -> None:
@@ -118,6 +143,7 @@ class HilWorld:
                     cur[1] + int(ACTION_DELTAS[action][1]),
                 )
                 self.motion[car_id] = (cur, dest, time.monotonic_ns())
+        self._changed()
 
     def abort(self, car_id: int) -> None:
         """A move was cut: the car stays; a follower already on its cell is a collision."""
@@ -127,27 +153,31 @@ class HilWorld:
                 here = self.pose.get(car_id)
                 if any(c != car_id and p == here for c, p in self.pose.items()):
                     self.counts["collisions"] += 1
+        self._changed()
 
     def move(self, car_id: int, pose: Cell, action: int) -> Cell:
         """Where a finished move ends (a car off the arena goes nowhere)."""
         with self._lock:
             self.motion.pop(car_id, None)
-            if car_id not in self.pose:
-                return pose
-            cur = self.pose[car_id]
-            d = ACTION_DELTAS[action]
-            dest = (cur[0] + int(d[0]), cur[1] + int(d[1]))
-            inside = 0 <= dest[0] < self.geometry.rows and 0 <= dest[1] < self.geometry.cols
-            held = any(
-                c != car_id and p == dest and not (c in self.motion and self.motion[c][0] == dest)
-                for c, p in self.pose.items()
-            )
-            if inside and self.layout[dest] == FREE and not held:
-                self.pose[car_id] = dest
-                self.counts["moves"] += 1
-            else:
-                self.counts["blocked"] += 1
-            return self.pose[car_id]
+            if car_id in self.pose:
+                cur = self.pose[car_id]
+                d = ACTION_DELTAS[action]
+                dest = (cur[0] + int(d[0]), cur[1] + int(d[1]))
+                inside = 0 <= dest[0] < self.geometry.rows and 0 <= dest[1] < self.geometry.cols
+                held = any(
+                    c != car_id
+                    and p == dest
+                    and not (c in self.motion and self.motion[c][0] == dest)
+                    for c, p in self.pose.items()
+                )
+                if inside and self.layout[dest] == FREE and not held:
+                    self.pose[car_id] = dest
+                    self.counts["moves"] += 1
+                else:
+                    self.counts["blocked"] += 1
+            end = self.pose.get(car_id, pose)
+        self._changed()
+        return end
 
     # -- episodes and the harness ----------------------------------------------------------
     def place(self, layout: np.ndarray, cells: dict[int, Cell]) -> None:
@@ -156,12 +186,14 @@ class HilWorld:
             self.layout = layout.copy()
             self.pose = dict(cells)
             self.motion.clear()
+        self._changed()
 
     def remove(self, car_id: int) -> None:
         """Take a car off the arena (it leaves the camera's view)."""
         with self._lock:
             self.pose.pop(car_id, None)
             self.motion.pop(car_id, None)
+        self._changed()
 
     def add(self, car_id: int, cell: Cell | None = None) -> Cell:
         """Put a car on ``cell`` (default: the free start cell nearest the bottom-right)."""
@@ -178,7 +210,8 @@ class HilWorld:
             if self.layout[cell] != FREE or cell in taken:
                 raise ValueError(f"cell {cell} is not free")
             self.pose[car_id] = cell
-            return cell
+        self._changed()
+        return cell
 
     # -- what the camera sees ----------------------------------------------------------------
     def snapshot(self, now_ns: int) -> tuple[list[tuple[int, float, float, float]], dict]:
@@ -211,29 +244,113 @@ class HilWorld:
             }
 
 
-class CameraThread(threading.Thread):
-    """Renders the world at the camera's rate and publishes it, off the cars' event loop."""
+#: The camera process yields the CPU to the cars and the edge (Unix niceness, higher is nicer).
+CAMERA_NICENESS = 10
 
-    def __init__(self, world: HilWorld, renderer: Renderer, camera: VirtualCamera) -> None:
-        super().__init__(name="virtual-camera", daemon=True)
-        self.world = world
-        self.renderer = renderer
-        self.camera = camera
-        self.render_ns: deque[int] = deque(maxlen=20_000)
-        self._halt = threading.Event()
 
-    def _render(self, t_ns: int) -> np.ndarray:
-        cars, cells = self.world.snapshot(t_ns)
-        image = self.renderer.render(cars, cells)
-        self.render_ns.append(time.monotonic_ns() - t_ns)
+class CameraProcess:
+    """The virtual camera in a process of its own, rendering a mirror of the world at 40 FPS.
+
+    As a thread of the cars' process, rendering (about 10 ms of CPU a frame, part of it holding
+    the GIL) delayed the cars' receive loop: a command that reaches a car after its deadline is
+    a miss. Its own process, at a lower priority, leaves the cars' process nearly idle. The
+    world sends every change of its :meth:`HilWorld.scene` down a pipe; the camera interpolates
+    moves in progress itself from their start times (``time.monotonic_ns`` is one clock for all
+    processes on the machine).
+    """
+
+    def __init__(self, world: HilWorld, config: dict[str, Any]) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._conn, child = context.Pipe()
+        self._process = context.Process(
+            target=_camera_main, args=(child, config), name="virtual-camera", daemon=True
+        )
+        self._process.start()
+        child.close()
+        reply = self._conn.recv() if self._conn.poll(60) else ("error", "camera did not start")
+        if reply[0] != "ready":
+            self._process.join(timeout=5)
+            raise OSError(f"virtual camera: {reply[1]}")
+        world.listener = self._send_scene
+        self._send_scene(world.scene())
+
+    def _send_scene(self, scene: Scene) -> None:
+        with contextlib.suppress(OSError):  # a camera that died shows as a stream that stopped
+            self._conn.send(("scene", scene))
+
+    def stall(self, seconds: float) -> None:
+        """Camera fault: publish nothing for ``seconds`` from now."""
+        self._conn.send(("stall", seconds))
+
+    def stop(self) -> dict[str, Any]:
+        """Stop rendering, remove the shared memory; the camera's counters."""
+        summary: dict[str, Any] = {}
+        try:
+            self._conn.send(("stop", None))
+            if self._conn.poll(10):
+                summary = self._conn.recv()[1]
+        except (OSError, EOFError):
+            pass
+        self._process.join(timeout=5)
+        if self._process.is_alive():
+            self._process.terminate()
+        return summary
+
+
+def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
+    """The camera process: render the mirrored world until told to stop (or the world dies)."""
+    os.nice(CAMERA_NICENESS)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the world, which stops us
+    try:
+        model = CameraModel(**config["model"])
+        renderer = Renderer(ArenaGeometry(), model)
+        camera = VirtualCamera(
+            config["name"], model.width, model.height, video=config["video"], fps=config["fps"]
+        )
+    except (OSError, ValueError) as err:
+        conn.send(("error", str(err)))
+        return
+    world = HilWorld(ArenaGeometry(), config["markers"], config["cell_time_s"])
+    halt = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: halt.set())
+    render_ns: deque[int] = deque(maxlen=20_000)
+
+    def listen() -> None:
+        while not halt.is_set():
+            try:
+                kind, value = conn.recv()
+            except (EOFError, OSError):
+                kind, value = "stop", None
+            if kind == "scene":
+                world.restore(value)
+            elif kind == "stall":
+                camera.stall(value)
+            else:
+                halt.set()
+
+    def render(t_ns: int) -> np.ndarray:
+        cars, cells = world.snapshot(t_ns)
+        image = renderer.render(cars, cells)
+        render_ns.append(time.monotonic_ns() - t_ns)
         return image
 
-    def run(self) -> None:
-        self.camera.run(self._render, stop=self._halt)
-
-    def stop(self) -> None:
-        self._halt.set()
-        self.join(timeout=2)
+    threading.Thread(target=listen, name="world mirror", daemon=True).start()
+    conn.send(("ready", None))
+    try:
+        camera.run(render, stop=halt)
+    finally:
+        camera.close()
+    ms = np.asarray(render_ns or [0]) / 1e6
+    summary = {
+        "frames": camera.frames,
+        "frames_faulted": camera.faulted,
+        "render_ms": {
+            "p50": round(float(np.median(ms)), 3),
+            "p99": round(float(np.percentile(ms, 99)), 3),
+        },
+    }
+    with contextlib.suppress(OSError):
+        conn.send(("summary", summary))
 
 
 class _Control(asyncio.DatagramProtocol):
@@ -297,7 +414,7 @@ class WorldServer:
             cell = tuple(request["cell"]) if request.get("cell") else None
             return {"cell": list(self.world.add(int(request["car"]), cell))}
         if op == "stall":
-            self.camera.camera.stall(float(request["seconds"]))
+            self.camera.stall(float(request["seconds"]))
             return {}
         raise ValueError(f"unknown op {op!r}")
 
@@ -338,22 +455,27 @@ class WorldServer:
             )  # fmt: skip
             await car.start()
             self.cars[spec.car_id] = car
-        model = CameraModel(
-            tilt_deg=args.tilt, k1=args.k1, noise_sigma=args.noise, blur_sigma=args.blur,
-            seed=args.seed,
-        )  # fmt: skip
-        renderer = Renderer(self.geometry, model)
-        vcam = VirtualCamera(
-            args.camera_name, model.width, model.height, video=args.video, fps=args.fps
+        model = {
+            "tilt_deg": args.tilt, "k1": args.k1, "noise_sigma": args.noise,
+            "blur_sigma": args.blur, "seed": args.seed,
+        }  # fmt: skip
+        self.camera = CameraProcess(
+            self.world,
+            {
+                "model": model,
+                "name": args.camera_name,
+                "video": None if args.video is None else str(args.video),
+                "fps": args.fps,
+                "markers": self.world.markers,
+                "cell_time_s": args.cell_time_ms / 1000,
+            },
         )
-        self.camera = CameraThread(self.world, renderer, vcam)
         control, _ = await loop.create_datagram_endpoint(
             lambda: _Control(self), local_addr=("127.0.0.1", args.control_port)
         )
         stop = asyncio.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
-        self.camera.start()
         ready = {
             "ready": True,
             "control_port": control.get_extra_info("sockname")[1],
@@ -364,23 +486,12 @@ class WorldServer:
         try:
             await stop.wait()
         finally:
-            self.camera.stop()
-            vcam.close()
+            camera = self.camera.stop()
             counters = {str(c): car.counters() for c, car in self.cars.items()}
             for car in self.cars.values():
                 car.close()
             control.close()
-        render = np.asarray(self.camera.render_ns or [0]) / 1e6
-        return {
-            "world": self.world.state()["counts"],
-            "frames": vcam.frames,
-            "frames_faulted": vcam.faulted,
-            "render_ms": {
-                "p50": round(float(np.median(render)), 3),
-                "p99": round(float(np.percentile(render, 99)), 3),
-            },
-            "cars": counters,
-        }
+        return {"world": self.world.state()["counts"], **camera, "cars": counters}
 
 
 def _parser() -> argparse.ArgumentParser:
