@@ -11,6 +11,7 @@ from udan.envs.grouping import (
     hypothetical_groups,
     nearest,
     neighbour_table,
+    neighbour_tables,
 )
 
 
@@ -107,3 +108,23 @@ def test_groups_from_a_precomputed_neighbour_table_equal_a_fresh_search():
             form_groups(pos, present, prob, k, 0.5, near=table)
             == form_groups(pos, present, prob, k, 0.5)
         ).all()
+
+
+@pytest.mark.parametrize("agents", [7, 70])
+def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
+    """Training's batched tables: small fleets by one sort of all pairs, large ones by rings,
+    shared cells and absent agents included; -1 columns beyond the agents present."""
+    rng = np.random.default_rng(agents)
+    for _ in range(50):
+        m, count = int(rng.integers(0, 6)), int(rng.integers(1, 10))
+        side = 20 if agents > 64 else int(rng.integers(3, 9))
+        if rng.random() < 0.5:  # distinct cells (rings for large fleets), else shared ones
+            flat = np.argsort(rng.random((m, side * side)), axis=1)[:, :agents]
+        else:
+            flat = rng.integers(0, side * side, (m, agents))
+        pos = np.stack(np.divmod(flat, side), -1)
+        present = rng.random((m, agents)) < rng.random()
+        got = neighbour_tables(pos, present, count)
+        assert got.shape == (m, agents, count)
+        for i in range(m):
+            assert (got[i] == neighbour_table(pos[i], present[i], count)).all()

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, neighbour_table
+from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, neighbour_tables
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
 ALGOS = ("udan", "qmix", "vdn", "iql", "coma")
@@ -103,11 +103,12 @@ class MultiAgentQ(nn.Module):
         raise ValueError(f"{self.spec.algo} has no mixer")
 
 
-def neighbour_rows(tables: list[np.ndarray]) -> torch.Tensor:
-    """Per-arena :func:`neighbour_table` s as rows into the arenas' flattened agents (-1 kept)."""
-    n = tables[0].shape[0]
-    rows = [np.where(t >= 0, t + i * n, -1) for i, t in enumerate(tables)]
-    return torch.from_numpy(np.concatenate(rows))
+def neighbour_rows(tables: np.ndarray) -> torch.Tensor:
+    """Neighbour tables of M arenas (M, N, K) (:func:`neighbour_tables`) as rows into the
+    arenas' flattened agents (M * N, K), -1 kept."""
+    m, n, count = tables.shape
+    offsets = (np.arange(m) * n)[:, None, None]
+    return torch.from_numpy(np.where(tables >= 0, tables + offsets, -1).reshape(m * n, count))
 
 
 def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list[torch.Tensor]:
@@ -118,10 +119,14 @@ def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list
     disjoint.
     """
     buckets: dict[tuple[int, int], list[np.ndarray]] = {}
+    known: dict[tuple[tuple[int, ...], bytes], list[np.ndarray]] = {}  # groups repeat for T steps
     for groups, offset in zip(groups_per_arena, offsets, strict=True):
         if len(groups) == 0:
             continue
-        for r, idx in enumerate(group_rounds(groups)):
+        key = (groups.shape, groups.tobytes())
+        if key not in known:
+            known[key] = group_rounds(groups)
+        for r, idx in enumerate(known[key]):
             buckets.setdefault((r, groups.shape[1]), []).append(groups[idx] + offset)
     return [torch.from_numpy(np.concatenate(buckets[key])) for key in sorted(buckets)]
 
@@ -133,11 +138,13 @@ class Actor:
         self.model, self.batch, self.slots = model, batch, slots
         self.state = model.encoder.initial_state(batch * slots)
         self.groups: list[np.ndarray] = [np.zeros((0, 0), np.int64)] * batch
+        self.rounds: list[torch.Tensor] = []  # the groups' rounds, made when they are formed
         self.t = 0
 
     def reset(self) -> None:
         self.state = self.model.encoder.initial_state(self.batch * self.slots)
         self.groups = [np.zeros((0, 0), np.int64)] * self.batch
+        self.rounds = []
         self.t = 0
 
     @torch.no_grad()
@@ -156,14 +163,10 @@ class Actor:
             torch.from_numpy(fresh.reshape(1, -1)),
         )
         feats = feats[0]
-        rounds: list[torch.Tensor] = []
         if spec.communicates:
             stale = any(len(g) and not present[b][g].all() for b, g in enumerate(self.groups))
             if self.t % spec.group_interval == 0 or stale:
-                tables = [
-                    neighbour_table(pos[b], present[b], spec.attention_neighbours)
-                    for b in range(self.batch)
-                ]
+                tables = neighbour_tables(pos, present, spec.attention_neighbours)
                 logits = self.model.leader(feats, neighbour_rows(tables))
                 prob = torch.sigmoid(logits).view(self.batch, self.slots).numpy()
                 self.groups = [
@@ -177,9 +180,10 @@ class Actor:
                     )
                     for b in range(self.batch)
                 ]
-            rounds = merge_rounds(self.groups, [b * self.slots for b in range(self.batch)])
+                offsets = [b * self.slots for b in range(self.batch)]
+                self.rounds = merge_rounds(self.groups, offsets)
         self.t += 1
-        return self.model.head(feats, self.model.messages(feats, rounds))
+        return self.model.head(feats, self.model.messages(feats, self.rounds))
 
     def act(
         self,
@@ -208,14 +212,6 @@ class Actor:
         return out
 
 
-def unpad_groups(padded: np.ndarray) -> np.ndarray:
-    """Inverse of :meth:`Actor.padded_groups` for one arena: (G, s) with no -1 rows."""
-    rows = padded[(padded >= 0).any(-1)]
-    if rows.size == 0:
-        return np.zeros((0, 0), dtype=np.int64)
-    return rows[:, : int((rows[0] >= 0).sum())].astype(np.int64)
-
-
 def leader_targets(delta_q: torch.Tensor) -> torch.Tensor:
     """Min-max normalised ΔQ (eq. 9's ΔQ̂) in [0, 1]; all equal -> 0.5."""
     lo, hi = delta_q.min(), delta_q.max()
@@ -229,7 +225,7 @@ def hypothetical_delta_q(
     feats: torch.Tensor,
     pos: np.ndarray,
     present: np.ndarray,
-    tables: list[np.ndarray] | None = None,
+    tables: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """ΔQ of eq. (4) for every present agent as a leader of its k-1 nearest (features detached).
 

@@ -30,7 +30,7 @@ from torch.nn import functional as F
 from udan.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.arena import ArenaBatch
-from udan.envs.grouping import neighbour_table
+from udan.envs.grouping import neighbour_tables
 from udan.learner import (
     ALGOS,
     Actor,
@@ -40,7 +40,6 @@ from udan.learner import (
     leader_targets,
     merge_rounds,
     neighbour_rows,
-    unpad_groups,
 )
 
 
@@ -211,13 +210,13 @@ def unroll(model: MultiAgentQ, obs: torch.Tensor, fresh: torch.Tensor) -> torch.
 def stored_rounds(groups: np.ndarray) -> list[torch.Tensor]:
     """The acting-time groups (C) of a batch (E, T1, N, k) as rounds over (T1, E*N) rows."""
     e, t1, n, _ = groups.shape
+    steps = groups.transpose(1, 0, 2, 3).reshape(t1 * e, n, -1)  # arena-steps, time-major
+    counts = (steps >= 0).any(-1).sum(-1)  # Actor.padded_groups packs the groups first
     per_arena, offsets = [], []
-    for t in range(t1):
-        for i in range(e):
-            g = unpad_groups(groups[i, t])
-            if len(g):
-                per_arena.append(g)
-                offsets.append((t * e + i) * n)
+    for a in np.flatnonzero(counts):
+        rows = steps[a, : counts[a]]
+        per_arena.append(rows[:, : int((rows[0] >= 0).sum())].astype(np.int64))
+        offsets.append(int(a) * n)
     return merge_rounds(per_arena, offsets)
 
 
@@ -286,7 +285,7 @@ def update(
         pos = batch["pos"][:, formed.numpy()].transpose(1, 0, 2, 3).reshape(-1, n, 2)
         alive_f = batch["present"][:, formed.numpy()].transpose(1, 0, 2).reshape(-1, n)
         count = model.spec.attention_neighbours  # one neighbour search serves both uses
-        tables = [neighbour_table(p, a, count) for p, a in zip(pos, alive_f, strict=True)]
+        tables = neighbour_tables(pos, alive_f, count)
         rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f, tables)
         if len(rows):
             logits = model.leader(f, neighbour_rows(tables))[rows]

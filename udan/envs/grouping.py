@@ -32,17 +32,25 @@ def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     shape = cells.max(0) + 1
     flat = cells[:, 0] * shape[1] + cells[:, 1]
     if slots.size <= RING_SEARCH_FROM or np.unique(flat).size < flat.size:
-        out[slots] = _nearest_all_pairs(cells, slots, size)
-    else:
-        out[slots] = _nearest_by_rings(cells, slots, size, shape)
+        return _nearest_all_pairs(pos[None], present[None], size)[0]
+    out[slots] = _nearest_by_rings(cells, slots, size, shape)
     return out
 
 
-def _nearest_all_pairs(cells: np.ndarray, slots: np.ndarray, size: int) -> np.ndarray:
-    dist = np.abs(cells[:, None, :] - cells[None, :, :]).sum(-1)
-    key = dist * (slots.max() + 1) + slots[None, :]  # distance first, then slot: unique keys
-    np.fill_diagonal(key, -1)  # itself first
-    return slots[np.argsort(key, axis=1, kind="stable")[:, :size]]
+def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
+    """:func:`nearest` by sorting all pairs, for M arenas at once: (M, N, 2), (M, N) ->
+    (M, N, count) slots, -1 where fewer agents are present."""
+    m, n = present.shape
+    absent = np.iinfo(np.int64).max
+    dist = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1)
+    key = np.where(present[:, None, :], dist * n + np.arange(n), absent)  # distance, then slot
+    key[:, np.arange(n), np.arange(n)] = -1  # itself first
+    order = np.argsort(key, axis=2, kind="stable")[:, :, :count]
+    near = np.where(np.take_along_axis(key, order, axis=2) != absent, order, -1)
+    near[~present] = -1
+    out = np.full((m, n, count), -1, dtype=np.int64)
+    out[:, :, : near.shape[2]] = near
+    return out
 
 
 def _nearest_by_rings(
@@ -92,6 +100,19 @@ def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndar
     near = nearest(pos, present, count)
     out = np.full((len(present), count), -1, dtype=np.int64)
     out[:, : near.shape[1]] = near
+    return out
+
+
+def neighbour_tables(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
+    """:func:`neighbour_table` of M arenas at once: ``pos`` (M, N, 2), ``present`` (M, N) ->
+    (M, N, count). Fleets up to ``RING_SEARCH_FROM`` sort the pairs of every arena in one call
+    (training asks for hundreds of small arenas per update); larger ones go arena by arena."""
+    m, n = present.shape
+    if n <= RING_SEARCH_FROM:
+        return _nearest_all_pairs(pos, present, count)
+    out = np.full((m, n, count), -1, dtype=np.int64)
+    for i in range(m):
+        out[i] = neighbour_table(pos[i], present[i], count)
     return out
 
 
