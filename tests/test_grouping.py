@@ -128,3 +128,17 @@ def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
         assert got.shape == (m, agents, count)
         for i in range(m):
             assert (got[i] == neighbour_table(pos[i], present[i], count)).all()
+
+
+def test_many_groups_get_the_same_rounds_as_the_loop(monkeypatch):
+    rng = np.random.default_rng(5)
+    cases = []
+    for _ in range(200):
+        agents, size = int(rng.integers(3, 300)), int(rng.integers(2, 4))
+        count = int(rng.integers(grouping.VECTOR_ROUNDS_FROM, 200))
+        cases.append(np.stack([rng.choice(agents, size, replace=False) for _ in range(count)]))
+    fast = [grouping.group_rounds(groups) for groups in cases]
+    monkeypatch.setattr(grouping, "VECTOR_ROUNDS_FROM", 10**9)  # the loop for every size
+    for groups, got in zip(cases, fast, strict=True):
+        want = grouping.group_rounds(groups)
+        assert [r.tolist() for r in got] == [r.tolist() for r in want]

@@ -158,12 +158,18 @@ def hypothetical_groups(
     return near[slots, :size]
 
 
+#: From this many groups, rounds are found with array operations instead of a loop over groups.
+VECTOR_ROUNDS_FROM = 48
+
+
 def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
     """Split groups (in priority order) into rounds of disjoint groups; returns group indices.
 
     A group goes to the first round after the last round that holds any of its members, so an
     agent's groups are processed in priority order and each round can be one batched call.
     """
+    if len(groups) >= VECTOR_ROUNDS_FROM:
+        return _rounds_by_relaxation(groups)
     last_round: dict[int, int] = {}
     rounds: list[list[int]] = []
     for g, members in enumerate(groups.tolist()):
@@ -174,6 +180,28 @@ def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
         for m in members:
             last_round[m] = r
     return [np.array(r, dtype=np.int64) for r in rounds]
+
+
+def _rounds_by_relaxation(groups: np.ndarray) -> list[np.ndarray]:
+    """:func:`group_rounds` for many groups: a group's round is one more than the round of the
+    previous group of each of its members (the longest chain of shared members before it),
+    found by relaxing all groups at once, one pass per round."""
+    n_groups, size = groups.shape
+    flat = groups.ravel()
+    order = np.argsort(flat, kind="stable")  # each member's groups, in priority order
+    prev = np.full(flat.size, -1, dtype=np.int64)
+    same = flat[order[1:]] == flat[order[:-1]]
+    prev[order[1:][same]] = order[:-1][same] // size  # the member's previous group
+    prev = prev.reshape(n_groups, size)
+    has_prev = prev >= 0
+    rounds = np.zeros(n_groups, dtype=np.int64)
+    while True:
+        after = np.where(has_prev, rounds[prev] + 1, 0).max(axis=1)
+        if (after == rounds).all():
+            break
+        rounds = after
+    by_round = np.argsort(rounds, kind="stable")
+    return np.split(by_round, np.cumsum(np.bincount(rounds))[:-1])
 
 
 def communication_matrix(groups: np.ndarray, n: int) -> np.ndarray:
