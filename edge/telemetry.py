@@ -89,6 +89,10 @@ def resident_mb() -> float:
     return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
 
 
+MEMORY_PERIOD_S = 10.0
+WARM_UP_S = 60.0
+
+
 class Telemetry:
     """Collects frames and steps; writes JSON lines; prints the live line; builds the report."""
 
@@ -107,6 +111,7 @@ class Telemetry:
         self.episodes: list[dict[str, Any]] = []
         self.started_ns = time.monotonic_ns()
         self.memory_start_mb = resident_mb()
+        self.memory: list[tuple[float, float]] = []  # (seconds since start, MB) every 10 s
         self.cars = 0
         self._file = open(jsonl, "w", encoding="utf-8") if jsonl else None  # noqa: SIM115
         self._live = live
@@ -154,7 +159,16 @@ class Telemetry:
         for name in SPANS[1:]:
             self._span(name, record.get(f"{name}_ns"))
         self._write({"kind": "step", **record})
-        self._maybe_live(record.get("t_ns", time.monotonic_ns()))
+        now_ns = record.get("t_ns", time.monotonic_ns())
+        self._maybe_sample_memory(now_ns)
+        self._maybe_live(now_ns)
+
+    def _maybe_sample_memory(self, now_ns: int) -> None:
+        """Resident memory every ``MEMORY_PERIOD_S``: growth in a run of hours shows here."""
+        elapsed_s = (now_ns - self.started_ns) / 1e9
+        if elapsed_s >= MEMORY_PERIOD_S * (len(self.memory) + 1):
+            self.memory.append((round(elapsed_s, 1), resident_mb()))
+            self._write({"kind": "memory", "t_ns": now_ns, "resident_mb": self.memory[-1][1]})
 
     def event(self, kind: str, **fields: Any) -> None:
         """A fleet or camera event (join, leave, stall, estop, episode)."""
@@ -204,7 +218,19 @@ class Telemetry:
             "spans": {name: h.summary() for name, h in self.spans.items()},
             "per_car": {str(c): dict(v) for c, v in sorted(self.per_car.items())},
             "episodes": self.episodes,
-            "memory_mb": {"start": self.memory_start_mb, "end": resident_mb()},
+            "memory_mb": self.memory_summary(),
+        }
+
+    def memory_summary(self) -> dict[str, float | None]:
+        """Resident MB at start, after the first minute (models loaded, buffers grown: the
+        baseline for growth), at its peak and now."""
+        warm = next((mb for t, mb in self.memory if t >= WARM_UP_S), None)
+        end = resident_mb()
+        return {
+            "start": self.memory_start_mb,
+            "after_1min": warm,
+            "peak": max([end, *(mb for _, mb in self.memory)]),
+            "end": end,
         }
 
     def final_line(self) -> str:

@@ -46,3 +46,16 @@ def test_report_counts_spans_and_json_lines(tmp_path) -> None:
     assert kinds == ["frame", "step", "episode"]
     assert "cars 2" in stream.getvalue() and "missed 1" in stream.getvalue()
     assert "1 episodes, mean score 40.00" in tel.final_line()
+
+
+def test_memory_is_sampled_every_ten_seconds_of_the_run(tmp_path) -> None:
+    tel = Telemetry(tmp_path / "t.jsonl", live=False)
+    for second in range(0, 75, 5):
+        tel.step({"t_ns": tel.started_ns + second * 10**9, "cars": 1})
+    memory = tel.report()["memory_mb"]
+    tel.close()
+    assert [t for t, _ in tel.memory] == [10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0]
+    assert memory["after_1min"] == tel.memory[5][1] > 0
+    assert memory["peak"] >= max(memory["end"], memory["after_1min"])
+    lines = [json.loads(line) for line in (tmp_path / "t.jsonl").read_text().splitlines()]
+    assert sum(line["kind"] == "memory" for line in lines) == 7
