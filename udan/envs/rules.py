@@ -74,8 +74,7 @@ def resolve_moves(
         dst = np.where(blocked, cur, dst)
         moving &= ~blocked
     out = pos.copy()
-    local = dst - offset[:, 0].repeat(present.sum(axis=1))
-    out[present] = np.stack(divmod(local, width), axis=-1)
+    out[present] = np.where((dst != cur)[:, None], dest[present], pos[present])  # moved or not
     return out
 
 
