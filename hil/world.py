@@ -274,13 +274,16 @@ class CameraProcess:
         world.listener = self._send_scene
         self._send_scene(world.scene())
 
-    def _send_scene(self, scene: Scene) -> None:
+    def _send(self, kind: str, value: Any) -> None:
         with contextlib.suppress(OSError):  # a camera that died shows as a stream that stopped
-            self._conn.send(("scene", scene))
+            self._conn.send((kind, value))
+
+    def _send_scene(self, scene: Scene) -> None:
+        self._send("scene", scene)
 
     def stall(self, seconds: float) -> None:
         """Camera fault: publish nothing for ``seconds`` from now."""
-        self._conn.send(("stall", seconds))
+        self._send("stall", seconds)
 
     def stop(self) -> dict[str, Any]:
         """Stop rendering, remove the shared memory; the camera's counters."""
@@ -303,14 +306,14 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the world, which stops us
     try:
         model = CameraModel(**config["model"])
-        renderer = Renderer(ArenaGeometry(), model)
+        renderer = Renderer(config["geometry"], model)
         camera = VirtualCamera(
             config["name"], model.width, model.height, video=config["video"], fps=config["fps"]
         )
     except (OSError, ValueError) as err:
         conn.send(("error", str(err)))
         return
-    world = HilWorld(ArenaGeometry(), config["markers"], config["cell_time_s"])
+    world = HilWorld(config["geometry"], config["markers"], config["cell_time_s"])
     halt = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: halt.set())
     render_ns: deque[int] = deque(maxlen=20_000)
@@ -463,6 +466,7 @@ class WorldServer:
             self.world,
             {
                 "model": model,
+                "geometry": self.geometry,
                 "name": args.camera_name,
                 "video": None if args.video is None else str(args.video),
                 "fps": args.fps,

@@ -44,6 +44,7 @@ def test_the_camera_process_shows_the_world_and_stops_cleanly() -> None:
     name = f"udan-test-{uuid.uuid4().hex[:8]}"
     config = {
         "model": {"noise_sigma": 2.0},
+        "geometry": ArenaGeometry(),
         "name": name,
         "video": None,
         "fps": 40.0,
