@@ -67,12 +67,6 @@ class _Graph:
         self.nodes.append(helper.make_node(op_type, list(inputs), outputs, **attrs))
         return outputs[0]
 
-    def split(self, value: str, parts: int, axis: int) -> list[str]:
-        """``value`` cut into ``parts`` equal pieces along ``axis``."""
-        outputs = [self._name("split") for _ in range(parts)]
-        self.op("Split", value, out=outputs, axis=axis, num_outputs=parts)
-        return outputs
-
     def weight(self, hint: str, array: np.ndarray) -> str:
         name = self._name(hint)
         self.weights.append(numpy_helper.from_array(np.ascontiguousarray(array), name))
@@ -121,7 +115,7 @@ def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelPr
         name: t.detach().cpu().numpy().astype(np.float32) for name, t in model.state_dict().items()
     }
     g = _Graph()
-    feats = _encoder(g, w, hidden)
+    feats = _encoder(g, w, hidden, skippable=spec.communicates)
     w_head = w["head.net.0.weight"].T  # (2 * hidden, hidden): features, then message
     z = g.op(
         "Gemm", feats, g.weight("head_w", w_head[:hidden]), g.weight("head_b", w["head.net.0.bias"])
@@ -152,6 +146,7 @@ def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelPr
     ]
     if spec.communicates:
         inputs += [
+            _value("encoded", BOOL, []),
             _value("neighbours", I64, ["agents", "neighbour_slots"]),
             _value("members", I64, ["group_width", "groups"]),
             _value("round_groups", I64, ["rounds"]),
@@ -169,21 +164,57 @@ def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelPr
     return onnx_model
 
 
-def _encoder(g: _Graph, w: Mapping[str, np.ndarray], hidden: int) -> str:
+def _encoder(g: _Graph, w: Mapping[str, np.ndarray], hidden: int, skippable: bool) -> str:
     """MLP, then one step of the model's LSTM from (h, c): writes ``h_out`` and ``c_out`` and
-    returns the features (N, hidden), which are ``h_out``."""
+    returns the features (N, hidden), which are ``h_out``.
+
+    ``skippable`` (UDAN): the encoder sits under an ``If`` on the ``encoded`` input. The second
+    call of a group-formation step passes the first call's ``h_out``/``c_out`` with ``encoded``
+    true: they already are this step's features, so they pass through and the encoder is not
+    run again."""
+    e = g.sub() if skippable else g
     x = "obs"
     for layer in ("0", "2"):
-        weight = g.weight(f"mlp{layer}_w", w[f"encoder.mlp.{layer}.weight"].T)
-        x = g.op(
+        weight = e.weight(f"mlp{layer}_w", w[f"encoder.mlp.{layer}.weight"].T)
+        x = e.op(
             "Relu",
-            g.op("Gemm", x, weight, g.weight(f"mlp{layer}_b", w[f"encoder.mlp.{layer}.bias"])),
+            e.op("Gemm", x, weight, e.weight(f"mlp{layer}_b", w[f"encoder.mlp.{layer}.bias"])),
         )
     w_ih, w_hh, b = _lstm_weights(w, "encoder.lstm.", ("",), hidden)
-    weights = [g.weight("lstm_w", w_ih), g.weight("lstm_r", w_hh), g.weight("lstm_b", b)]
-    steps = g.op("Unsqueeze", x, g.const(0))  # (1 step, N, hidden)
-    g.op("LSTM", steps, *weights, "", "h", "c", out=["", "h_out", "c_out"], hidden_size=hidden)
-    return g.op("Squeeze", "h_out", g.const(0))
+    weights = [e.weight("lstm_w", w_ih), e.weight("lstm_r", w_hh), e.weight("lstm_b", b)]
+    steps = e.op("Unsqueeze", x, e.const(0))  # (1 step, N, hidden)
+    h_c = ["h_new", "c_new"] if skippable else ["h_out", "c_out"]
+    e.op("LSTM", steps, *weights, "", "h", "c", out=["", *h_c], hidden_size=hidden)
+    if not skippable:
+        return g.op("Squeeze", "h_out", g.const(0))
+    e.op("Squeeze", "h_new", e.const(0), out="feats_new")
+    state = [1, "agents", hidden]
+    run = helper.make_graph(
+        e.nodes,
+        "encode",
+        [],
+        [
+            _value("h_new", F32, state),
+            _value("c_new", F32, state),
+            _value("feats_new", F32, ["agents", hidden]),
+        ],
+    )
+    t = g.sub()
+    t.op("Identity", "h", out="h_given")
+    t.op("Identity", "c", out="c_given")
+    t.op("Squeeze", "h", t.const(0), out="feats_given")
+    given = helper.make_graph(
+        t.nodes,
+        "encoded",
+        [],
+        [
+            _value("h_given", F32, state),
+            _value("c_given", F32, state),
+            _value("feats_given", F32, ["agents", hidden]),
+        ],
+    )
+    g.op("If", "encoded", out=["h_out", "c_out", "feats"], then_branch=given, else_branch=run)
+    return "feats"
 
 
 def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
@@ -191,24 +222,37 @@ def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
     zeros. Leader scores are needed at group-formation steps only; every other call passes
     ``neighbours`` with no columns and skips the attention."""
     s = g.sub()
-    attn_dim = w["leader.key.weight"].shape[0]
-    scale = np.float32(attn_dim**-0.5)
-    w_kv = np.concatenate([w["leader.key.weight"], w["leader.value.weight"]]).T
-    b_kv = np.concatenate([w["leader.key.bias"], w["leader.value.bias"]])
-    kv = s.op("Gemm", feats, s.weight("leader_w_kv", w_kv), s.weight("leader_b_kv", b_kv))
+    # Folded: a query against W_k f_j + b_k is (W_k^T q) . f_j plus a term equal for every j,
+    # which the softmax drops; the value and output layers are linear after the attention
+    # weights, which sum to 1. So the gathered rows are the features themselves, and no key
+    # or value is computed.
+    w_q, b_q = w["leader.query.weight"], w["leader.query.bias"]  # (A, H), (A,)
+    w_k, w_v = w["leader.key.weight"], w["leader.value.weight"]
+    scale = np.float32(w_k.shape[0] ** -0.5)
+    w_out = w["leader.out.weight"][0]  # (A + H,): attended, then own features
+    w_attended, w_own = w_out[: w_v.shape[0]], w_out[w_v.shape[0] :]
+    query = s.op(
+        "Gemm",
+        feats,
+        s.weight("leader_w_query", (w_q.T @ w_k) * scale),
+        s.weight("leader_b_query", (b_q @ w_k) * scale),
+    )
     rows = s.op("Max", "neighbours", s.const(0, scalar=True))  # -1 (none) reads row 0, masked
-    keys, values = s.split(s.op("Gather", kv, rows), 2, axis=-1)  # (N, K, attn_dim) each
-    w_q, b_q = w["leader.query.weight"].T * scale, w["leader.query.bias"] * scale
-    query = s.op("Gemm", feats, s.weight("leader_w_q", w_q), s.weight("leader_b_q", b_q))
-    query = s.op("Unsqueeze", query, s.const(1))
-    scores = s.op("ReduceSum", s.op("Mul", query, keys), s.const(-1), keepdims=0)
+    near = s.op("Gather", feats, rows)  # (N, K, H)
+    scores = s.op(
+        "ReduceSum",
+        s.op("Mul", s.op("Unsqueeze", query, s.const(1)), near),
+        s.const(-1),
+        keepdims=0,
+    )
     there = s.op("GreaterOrEqual", "neighbours", s.const(0, scalar=True))
     scores = s.op("Where", there, scores, s.const(NO_NEIGHBOUR, scalar=True))
     attn = s.op("Unsqueeze", s.op("Softmax", scores, axis=-1), s.const(-1))
-    attended = s.op("ReduceSum", s.op("Mul", attn, values), s.const(1), keepdims=0)
-    w_out, b_out = w["leader.out.weight"].T, w["leader.out.bias"]  # rows: attended, features
-    own = s.op("Gemm", feats, s.weight("leader_w_f", w_out[attn_dim:]), s.weight("leader_b", b_out))
-    logits = s.op("Gemm", attended, s.weight("leader_w_a", w_out[:attn_dim]), own)
+    attended = s.op("ReduceSum", s.op("Mul", attn, near), s.const(1), keepdims=0)  # (N, H)
+    b_own = w["leader.out.bias"] + w_attended @ w["leader.value.bias"]
+    own = s.op("Gemm", feats, s.weight("leader_w_own", w_own[:, None]), s.weight("leader_b", b_own))
+    w_near = (w_attended @ w_v)[:, None]  # (H, 1)
+    logits = s.op("Gemm", attended, s.weight("leader_w_near", w_near), own)
     s.op("Reshape", logits, s.const(-1), out="scores")
     scored = helper.make_graph(s.nodes, "scored", [], [_value("scores", F32, ["agents"])])
 

@@ -20,6 +20,8 @@ from udan.envs.grouping import form_groups, group_rounds, neighbour_table
 from udan.envs.observe import ObsSpec
 
 OUTPUTS = ("q", "action", "h_out", "c_out")
+NOT_ENCODED = np.zeros((), bool)
+"""The ``encoded`` input of every call but a formation step's second: run the encoder."""
 
 
 def session(path: str | Path | bytes) -> ort.InferenceSession:
@@ -75,7 +77,8 @@ class PolicyGraph:
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Outputs by name for ``feeds`` by name (extra feeds, e.g. groups for a baseline, are
-        ignored so every algorithm can be driven alike)."""
+        ignored so every algorithm can be driven alike; ``encoded`` is false unless given)."""
+        feeds = {"encoded": NOT_ENCODED, **feeds}
         feeds = {name: feeds[name] for name in self.input_names}
         return dict(zip(self.outputs, self.session.run(self.outputs, feeds), strict=True))
 
@@ -86,7 +89,9 @@ class BoundGraph:
 
     Binding inputs anew costs onnxruntime about as much as a layer of these networks, so
     nothing is rebound between group formations: two bindings take turns, each reading the
-    state (h, c) the other one wrote. ``q`` and ``action`` are overwritten by every call.
+    state (h, c) the other one wrote. A UDAN graph has two more, taking turns the same way,
+    for the scoring call of a formation step (``neighbours`` bound to a table, no groups).
+    ``q`` and ``action`` are overwritten by every call.
     """
 
     def __init__(self, graph: PolicyGraph, h: np.ndarray, c: np.ndarray) -> None:
@@ -99,20 +104,28 @@ class BoundGraph:
         # The bindings point into these arrays: they live as long as this object.
         self.inputs: dict[str, np.ndarray] = {"obs": self.obs}
         self.outputs: dict[str, np.ndarray] = {"q": self.q, "action": self.action}
+        self.scoring: list[ort.IOBinding] = []
         if graph.communicates:
+            self.encoded = np.zeros((), bool)
+            self.inputs["encoded"] = self.encoded
             self.inputs["neighbours"] = no_neighbours(n)
             self.inputs.update(round_inputs(np.zeros((0, 0), np.int64)))
-            self.outputs["leader_logits"] = np.zeros(n, np.float32)
-        self.bindings = []
-        for turn in (0, 1):
-            binding = graph.session.io_binding()
-            (h_in, c_in), (h_out, c_out) = self.states[turn], self.states[1 - turn]
-            for name, array in {**self.inputs, "h": h_in, "c": c_in}.items():
-                binding.bind_cpu_input(name, array)
-            for name, array in {**self.outputs, "h_out": h_out, "c_out": c_out}.items():
-                binding.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(array))
-            self.bindings.append(binding)
+            self.leader_logits = np.zeros(n, np.float32)
+            self.outputs["leader_logits"] = self.leader_logits
+            self.table = np.full((n, int(graph.metadata["attention_neighbours"])), -1, np.int64)
+            score_inputs = {**self.inputs, "encoded": NOT_ENCODED, "neighbours": self.table}
+            self.scoring = [self._bind(turn, score_inputs) for turn in (0, 1)]
+        self.bindings = [self._bind(turn, self.inputs) for turn in (0, 1)]
         self.turn = 0
+
+    def _bind(self, turn: int, inputs: dict[str, np.ndarray]) -> ort.IOBinding:
+        binding = self.graph.session.io_binding()
+        (h_in, c_in), (h_out, c_out) = self.states[turn], self.states[1 - turn]
+        for name, array in {**inputs, "h": h_in, "c": c_in}.items():
+            binding.bind_cpu_input(name, array)
+        for name, array in {**self.outputs, "h_out": h_out, "c_out": c_out}.items():
+            binding.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(array))
+        return binding
 
     @property
     def state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +143,28 @@ class BoundGraph:
     def run(self, obs: np.ndarray) -> np.ndarray:
         """One graph call on ``obs`` (N, D); returns ``action`` (N,)."""
         np.copyto(self.obs, obs)
-        self.graph.session.run_with_iobinding(self.bindings[self.turn])
+        return self._call(self.bindings)
+
+    def score(self, obs: np.ndarray, table: np.ndarray) -> np.ndarray:
+        """The first call of a formation step: encode ``obs`` and score leaders over the
+        neighbour ``table`` (N, K); returns ``leader_logits`` (N,). The state is now this
+        step's features: :meth:`run_encoded` finishes the step with the groups."""
+        np.copyto(self.obs, obs)
+        np.copyto(self.table, table)
+        self._call(self.scoring)
+        return self.leader_logits
+
+    def run_encoded(self) -> np.ndarray:
+        """The second call of a formation step: the groups' messages and the actions from the
+        features :meth:`score` left in the state (the encoder is not run again)."""
+        self.encoded[()] = True
+        try:
+            return self._call(self.bindings)
+        finally:
+            self.encoded[()] = False
+
+    def _call(self, bindings: list[ort.IOBinding]) -> np.ndarray:
+        self.graph.session.run_with_iobinding(bindings[self.turn])
         self.turn = 1 - self.turn
         return self.action
 
@@ -139,8 +173,9 @@ class OnnxPolicy:
     """Greedy actions for one arena of N slots, step after step (the edge's policy).
 
     Refuses (``MetadataError``) a file whose metadata does not fit this code or ``expected``.
-    At a group-formation step the graph runs twice: once for the leader scores, once with the
-    groups formed from them (group formation is numpy, between the two; export/README.md).
+    At a group-formation step the graph runs twice: once for the features and leader scores,
+    once more from those features with the groups formed from them (group formation is numpy,
+    between the two; export/README.md).
     """
 
     def __init__(self, path: str | Path | bytes, expected: ObsSpec | None = None) -> None:
@@ -189,15 +224,17 @@ class OnnxPolicy:
             if self.reform or self.t % self.interval == 0 or stale:
                 self.reform = False
                 table = neighbour_table(pos, present, self.neighbours)
-                feeds = {"obs": obs, "h": h, "c": c, "neighbours": table}
-                logits = self.graph.run({**feeds, **round_inputs(self.groups[:0])})
-                prob = 1.0 / (1.0 + np.exp(-logits["leader_logits"]))
+                logits = self._steps.score(obs, table)
+                prob = 1.0 / (1.0 + np.exp(-logits))
                 self.groups = form_groups(pos, present, prob, self.k, self.threshold, near=table)
                 self._steps.bind_groups(self.groups)
-        actions = self._steps.run(obs).copy()
+                return self._done(self._steps.run_encoded())
+        return self._done(self._steps.run(obs))
+
+    def _done(self, actions: np.ndarray) -> np.ndarray:
         self.q = self._steps.q.copy()
         self.t += 1
-        return actions
+        return actions.copy()
 
     def _resize(self, n: int) -> None:
         keep = min(n, self.h.shape[1])

@@ -142,6 +142,12 @@ def parity(
             forget(states["ort"]["h"], states["ort"]["c"], fresh)
             got = graph.run({**base, **states["ort"]})
             want = torch_step(model, {**base, **states["torch"]}, case["groups"])
+            if spec.communicates:  # a formation step's second call: from the features, no encoder
+                again = {"h": got["h_out"], "c": got["c_out"], "neighbours": no_neighbours(n)}
+                second = graph.run({**base, **again, "encoded": np.ones((), bool)})
+                for name in ("q", "h_out", "c_out"):
+                    dq = max(dq, float(np.abs(second[name] - want[name]).max()))
+                equal &= bool(np.array_equal(second["action"], want["action"]))
             states["ort"] = {"h": got["h_out"], "c": got["c_out"]}
             states["torch"] = {"h": want["h_out"], "c": want["c_out"]}
             dq = max(dq, float(np.abs(got["q"] - want["q"]).max()))

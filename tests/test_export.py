@@ -196,6 +196,35 @@ def test_bound_calls_match_single_calls_step_after_step(udan_policy):
         assert np.array_equal(bound.state[0], h) and np.array_equal(bound.state[1], c)
 
 
+def test_a_formation_step_scores_then_acts_from_the_same_features(udan_policy):
+    """The scoring call and the ``encoded`` call of a formation step give what one call with
+    the neighbours and the groups gives, and leave the same state: the encoder ran once."""
+    graph = PolicyGraph(udan_policy)
+    n, hidden = 6, int(graph.metadata["hidden"])
+    rng = np.random.default_rng(4)
+    h, c = (rng.standard_normal((1, n, hidden), dtype=np.float32) for _ in range(2))
+    bound = BoundGraph(graph, h.copy(), c.copy())
+    groups = np.array([[0, 1, 2], [3, 2, 4]])
+    table = neighbour_table(rng.integers(0, 9, (n, 2)), np.ones(n, bool), 8)
+    for _ in range(3):
+        obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
+        want = graph.run({"obs": obs, "h": h, "c": c, "neighbours": table, **round_inputs(groups)})
+        assert np.array_equal(bound.score(obs, table), want["leader_logits"])
+        bound.bind_groups(groups)
+        assert np.array_equal(bound.run_encoded(), want["action"])
+        assert np.array_equal(bound.q, want["q"])
+        h, c = want["h_out"], want["c_out"]
+        assert np.array_equal(bound.state[0], h) and np.array_equal(bound.state[1], c)
+        assert not bound.encoded  # the next step runs the encoder again
+        assert np.array_equal(
+            bound.run(obs),
+            graph.run(
+                {"obs": obs, "h": h, "c": c, "neighbours": no_neighbours(n), **round_inputs(groups)}
+            )["action"],
+        )
+        h, c = bound.state
+
+
 def test_the_runtime_imports_and_acts_without_torch(udan_policy):
     code = f"""
 import sys

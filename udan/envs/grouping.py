@@ -10,6 +10,8 @@ order of the leaders' probability, highest first.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 #: Fleets up to this size compare all pairs (cheaper than growing rings on a small arena).
@@ -21,78 +23,86 @@ def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
 
     Grid (Manhattan) distance, ties broken by slot, so training and the edge agree exactly.
     Rows of absent agents are -1. Large fleets on distinct cells (the world rules guarantee it)
-    are searched ring by ring on an occupancy grid, O(N x cells searched); otherwise all pairs.
+    are searched ring by ring on an occupancy grid, O(agents found); otherwise all pairs.
     """
     slots = np.flatnonzero(present)
     size = min(count, slots.size)
-    out = np.full((len(present), size), -1, dtype=np.int64)
-    if size == 0:
-        return out
-    cells = pos[slots]
-    shape = cells.max(0) + 1
-    flat = cells[:, 0] * shape[1] + cells[:, 1]
-    if slots.size <= RING_SEARCH_FROM or np.unique(flat).size < flat.size:
+    found = None
+    if size and slots.size > RING_SEARCH_FROM:
+        found = _nearest_by_rings(pos[slots], slots, size)
+    if found is None:
         return _nearest_all_pairs(pos[None], present[None], size)[0]
-    out[slots] = _nearest_by_rings(cells, slots, size, shape)
+    out = np.full((len(present), size), -1, dtype=np.int64)
+    out[slots] = found
     return out
 
 
 def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     """:func:`nearest` by sorting all pairs, for M arenas at once: (M, N, 2), (M, N) ->
-    (M, N, count) slots, -1 where fewer agents are present."""
+    (M, N, count) slots, -1 where fewer agents are present.
+
+    A pair's key is ``distance * N + slot`` (itself: ``slot - N``, first), so sorting the keys
+    orders by distance then slot, and ``key % N`` gives the slot back."""
     m, n = present.shape
     absent = np.iinfo(np.int64).max
-    dist = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1)
-    key = np.where(present[:, None, :], dist * n + np.arange(n), absent)  # distance, then slot
-    key[:, np.arange(n), np.arange(n)] = -1  # itself first
-    order = np.argsort(key, axis=2, kind="stable")[:, :, :count]
-    near = np.where(np.take_along_axis(key, order, axis=2) != absent, order, -1)
-    near[~present] = -1
+    key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + np.arange(n)
+    key[:, np.arange(n), np.arange(n)] -= n
+    key = np.where(present[:, None, :], key, absent)
+    key.sort(axis=2)
     out = np.full((m, n, count), -1, dtype=np.int64)
-    out[:, :, : near.shape[2]] = near
+    near = key[:, :, :count]
+    out[:, :, : near.shape[2]] = np.where(present[:, :, None] & (near != absent), near % n, -1)
     return out
 
 
-def _nearest_by_rings(
-    cells: np.ndarray, slots: np.ndarray, size: int, shape: np.ndarray
-) -> np.ndarray:
-    """Every cell within a Manhattan radius around every agent at once, keyed by (distance,
-    slot) and sorted, so the result equals sorting all pairs by (distance, slot); agents that
-    find fewer than ``size`` within the radius search again with a radius half as big again."""
-    grid = np.full(tuple(shape), -1, dtype=np.int64)
-    grid[cells[:, 0], cells[:, 1]] = slots
-    found = np.full((len(slots), size), -1, dtype=np.int64)
+def _nearest_by_rings(cells: np.ndarray, slots: np.ndarray, size: int) -> np.ndarray | None:
+    """For agents on distinct ``cells``: bands of rings (distances 1-2, 3-4, 5-6, 7-9, ...)
+    around every agent that still lacks neighbours, all at once, on an occupancy grid. The
+    agents met in a band are nearer than any beyond it, so each joins in (distance, slot)
+    order; an agent leaves the search once it has ``size``, so the work follows the agents
+    found rather than the arena's size. None when two agents share a cell."""
+    shape = cells.max(0) + 1
+    if np.bincount(cells[:, 0] * shape[1] + cells[:, 1]).max() > 1:
+        return None
     scale = int(slots.max()) + 1
-    big = np.iinfo(np.int64).max  # sorts empty cells after every slot
-    # a diamond that holds about twice the agents needed, at the fleet's mean density
-    density = len(slots) / float(shape[0] * shape[1])
-    radius = max(1, int(np.ceil(np.sqrt(size / density))))
-    need = np.arange(len(slots))
+    found = np.full((len(slots), size), -1, dtype=np.int64)
+    found[:, 0] = slots  # itself, the only agent at distance 0
+    have = np.ones(len(slots), dtype=np.int64)
+    need = np.flatnonzero(have < size)
+    near = far = margin = 0
     while need.size:
-        padded = np.pad(grid, radius, constant_values=-1)  # off the grid: no agent
-        d_row, d_col = _diamond(radius)
-        width = padded.shape[1]
-        origin = (cells[need, 0] + radius) * width + cells[need, 1] + radius
-        hits = padded.ravel()[origin[:, None] + (d_row * width + d_col)[None, :]]
-        dist = np.abs(d_row) + np.abs(d_col)
-        keys = np.where(hits >= 0, dist * scale + hits, big)
-        if keys.shape[1] > size:
-            keys = np.partition(keys, size - 1, axis=1)[:, :size]
-        keys.sort(axis=1)
-        complete = (keys[:, -1] != big) | (radius >= shape.sum())
-        done = need[complete]
-        found[done] = np.where(keys[complete] != big, keys[complete] % scale, -1)
-        need = need[~complete]
-        radius += max(1, radius // 2)
+        near, far = far, far + max(2, far // 2)
+        if far > margin:  # a border of empty cells as wide as the band: no bounds checks
+            margin = 2 * far
+            grid = np.full(shape + 2 * margin, -1, dtype=np.int64)
+            width = grid.shape[1]
+            origin = (cells[:, 0] + margin) * width + cells[:, 1] + margin
+            grid.ravel()[origin] = slots
+        d_row, d_col, dist = _band(near, far)
+        hits = grid.ravel()[origin[need, None] + (d_row * width + d_col)]
+        row, col = np.nonzero(hits >= 0)
+        key = np.sort((row * (far + 1) + dist[col]) * scale + hits[row, col])
+        row = key // ((far + 1) * scale)
+        counts = np.bincount(row, minlength=need.size)
+        rank = np.arange(key.size) - (np.cumsum(counts) - counts)[row]
+        room = size - have[need]
+        ok = rank < room[row]
+        found[need[row[ok]], have[need[row[ok]]] + rank[ok]] = key[ok] % scale
+        have[need] += np.minimum(counts, room)
+        need = need[counts < room]
     return found
 
 
-def _diamond(radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column offsets of every cell within Manhattan ``radius`` of the origin."""
-    d = np.arange(-radius, radius + 1)
-    rows, cols = np.meshgrid(d, d, indexing="ij")
-    keep = np.abs(rows) + np.abs(cols) <= radius
-    return rows[keep], cols[keep]
+@functools.lru_cache(maxsize=64)
+def _band(near: int, far: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column offsets, and distances, of the cells at Manhattan distance ``near`` < d
+    <= ``far`` (each ring of 4 * d cells walked around the origin)."""
+    dist = np.repeat(np.arange(near + 1, far + 1), 4 * np.arange(near + 1, far + 1))
+    step = np.concatenate([np.arange(4 * d) for d in range(near + 1, far + 1)])
+    side, along = step // dist, step % dist  # which quarter of the ring, how far along it
+    d_row = np.choose(side, [along, dist - along, -along, along - dist])
+    d_col = np.choose(side, [dist - along, -along, along - dist, along])
+    return d_row, d_col, dist
 
 
 def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
