@@ -52,6 +52,22 @@ class Frame:
     """Frame number from the source: consecutive unless the source skipped frames."""
 
 
+#: How much nicer (Unix niceness) than the event loop the frame threads run: capture and vision
+#: have the frame period to finish, a command has its 10 ms deadline, so the loop that sends
+#: and retransmits commands preempts them.
+FRAME_THREAD_NICENESS = 5
+
+
+def yield_to_dispatch() -> None:
+    """Lower the calling thread's priority by ``FRAME_THREAD_NICENESS`` (Linux niceness is per
+    thread, and raising it needs no privilege); elsewhere nothing changes."""
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        os.setpriority(
+            os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + FRAME_THREAD_NICENESS
+        )
+
+
 class CameraError(Exception):
     """A camera that cannot be opened or read; the message is one line for the CLI."""
 
@@ -415,6 +431,7 @@ class FrameGrabber:
                 self._thread.start()
 
     def _run(self) -> None:
+        yield_to_dispatch()
         due = time.monotonic()
         try:
             while not self._stop.is_set():

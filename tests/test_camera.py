@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 import uuid
 
@@ -12,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from edge.camera import CameraError, FrameGrabber, open_camera, shm_path
+from edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera, shm_path
 from hil.vcam import VirtualCamera
 
 
@@ -109,6 +110,19 @@ async def test_grabber_newest_frame_wins_and_counts_drops(tmp_path):
     assert grabber.dropped > 0
     assert len(got) + grabber.dropped == grabber.captured
     assert grabber.ended
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="Unix niceness")
+async def test_the_capture_thread_yields_to_the_event_loop(tmp_path):
+    """Capture has a frame period to finish, a command its 10 ms deadline: the capture thread
+    runs nicer than the loop that dispatches."""
+    folder = write_images(tmp_path / "nice", 3)
+    grabber = FrameGrabber(open_camera(str(folder)), pace=20)
+    assert await grabber.next_frame(timeout=2.0) is not None
+    capture = os.getpriority(os.PRIO_PROCESS, grabber._thread.native_id)
+    loop = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    grabber.close()
+    assert capture == min(loop + FRAME_THREAD_NICENESS, 19)
 
 
 async def test_grabber_pace_and_timeout(tmp_path):
