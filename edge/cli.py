@@ -30,6 +30,7 @@ from edge.fleet import Fleet
 from edge.fleetfile import FleetFileError, load_fleet, write_fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
+from edge.pauses import freeze_garbage
 from edge.runtime import LoopConfig, Runtime, WorldError
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
@@ -135,6 +136,7 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     )
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
     runtime = Runtime(grabber, vision, link, decide, fleet, telemetry, config, world=world)
+    freeze_garbage()
     await link.start()
     try:
         return await runtime.run()

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from edge.geometry import ArenaGeometry
+from edge.pauses import freeze_garbage
 from firmware_mock.firmware import CarTiming
 from firmware_mock.fleet import FleetError, load_fleet
 from firmware_mock.udp import MockCar
@@ -451,6 +452,7 @@ class WorldServer:
         loop = asyncio.get_running_loop()
         edge_host, _, edge_port = args.edge.rpartition(":")
         timing = CarTiming(cell_time_s=args.cell_time_ms / 1000)
+        freeze_garbage()  # real cars have no garbage collector to pause them
         for i, spec in enumerate(self.specs):
             car = MockCar(
                 spec, edge=(edge_host, int(edge_port)), world=self.world, timing=timing,
