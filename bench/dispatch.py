@@ -90,6 +90,7 @@ def _summary(
         ),
         "missed": sum(rep.missed for rep in reports),
         "not_ready": sum(rep.not_ready for rep in reports),
+        "slow_sends": sum(rep.slow_sends for rep in reports),
         "late_sends": sum(rep.late_sends for rep in reports),
         "retried_commands": sum(rep.retried for rep in reports),
         "retransmits": after["retransmits"] - before["retransmits"],

@@ -8,7 +8,10 @@ retransmission. ``dispatch`` sends a step's commands back to back, each valid un
 deadline in the car's own clock, then resends the *identical bytes* of an unacknowledged command
 (the car answers a copy with a duplicate ACK and does not run it twice) until it is acknowledged
 or the deadline is too close for a frame to arrive in time. Nothing is sent within
-``send_margin_ns`` of the deadline, and the car refuses anything that arrives after it.
+``send_margin_ns`` of the deadline, and the car refuses anything that arrives after it. ACKs
+still on their way at the deadline are awaited ``ack_grace_ns`` longer, without resends: the
+car accepts only what reached it in time, so an accepted command was on time however late its
+ACK (a command sent in the last round trip before the deadline, or an edge held up by the OS).
 
 Keepalive is the runtime's: it sends a command (``wait`` included) every step. If steps pause
 past the cars' watchdog (300 ms) they stop and report WATCHDOG; the next command resumes them.
@@ -30,6 +33,7 @@ from edge.transport import Transport, TransportError
 
 RETRY_NS = 2_000_000  # resend an unacked command after this long (loopback rtt is ~0.3 ms)
 SEND_MARGIN_NS = 1_000_000  # no send this close to the deadline: it would arrive expired
+ACK_GRACE_NS = 3_000_000  # ACKs in flight at the deadline are awaited this long (no resends)
 SYNC_RETRY_NS = 200_000_000  # an unanswered time request is repeated after this long
 TICK_S = 0.05  # housekeeping period: re-syncs, silence
 ESTOP_REPEATS_S = (0.003, 0.006)  # an emergency stop is sent three times, in case one is lost
@@ -96,6 +100,7 @@ class CommandReport:
     result: str = "no_ack"
     car_deadline_us: int | None = None  # the deadline written in the frame (car clock)
     car_rx_us: int | None = None  # the car's receive time from the ACK (car clock)
+    slow_sends: int = 0  # sends whose syscall returned at or after the deadline
 
 
 @dataclass
@@ -109,7 +114,8 @@ class DispatchReport:
     retried: int = 0
     missed: int = 0
     not_ready: int = 0
-    late_sends: int = 0  # sends that completed at or after the deadline; must stay 0
+    slow_sends: int = 0  # sends whose syscall returned at or after the deadline
+    late_sends: int = 0  # slow sends not proven on time by the car; must stay 0
 
     @property
     def all_acked_ns(self) -> int | None:
@@ -118,6 +124,17 @@ class DispatchReport:
         if not sent or not all(r.acked for r in sent):
             return None
         return max(r.acked_ns for r in sent if r.acked_ns is not None)
+
+
+def _proven_on_time(r: CommandReport) -> bool:
+    """Whether the car's ACK proves the command's only copy arrived before its deadline.
+
+    A send's syscall can return past the deadline although the datagram left in time: on
+    loopback the woken receiver may run before the sender gets its core back. The car accepts
+    only what arrives within the validity, so an accepted single send was not late; with
+    resends the ACK does not say which copy arrived, and a slow one counts as late.
+    """
+    return r.acked and r.attempts == 1
 
 
 @dataclass(slots=True)
@@ -141,6 +158,7 @@ class CarLink:
         silence_s: float = 1.0,
         retry_ns: int = RETRY_NS,
         send_margin_ns: int = SEND_MARGIN_NS,
+        ack_grace_ns: int = ACK_GRACE_NS,
     ) -> None:
         self.transport = transport
         self.validity_ns = validity_ns
@@ -153,6 +171,7 @@ class CarLink:
         self._silence_ns = int(silence_s * 1e9)
         self._retry_ns = retry_ns
         self._send_margin_ns = send_margin_ns
+        self._ack_grace_ns = ack_grace_ns
         self._rejected: Counter[str] = Counter()
         self._counts: Counter[str] = Counter({name: 0 for name in COUNTERS})
         self._flights: dict[int, _Flight] = {}
@@ -287,7 +306,8 @@ class CarLink:
         """Send one step's commands, resend unacked ones while the deadline allows, report.
 
         Each command is valid until ``deadline_ns`` (default ``decision_ns + validity_ns``) in
-        the car's clock. Returns when every command sent is answered or the deadline has passed.
+        the car's clock. Returns when every command sent is answered, or ``ack_grace_ns`` after
+        the deadline.
         Cars that are not ready are reported, not raised; an action outside 0-5 is a
         ``ValueError`` before anything is sent.
         """
@@ -330,6 +350,8 @@ class CarLink:
             else:
                 report.missed += 1
             report.retried += r.attempts > 1
+            report.slow_sends += r.slow_sends
+            report.late_sends += r.slow_sends > 0 and not _proven_on_time(r)
         return report
 
     def _transmit(self, flight: _Flight, report: DispatchReport) -> None:
@@ -340,7 +362,7 @@ class CarLink:
         after = self._clock()
         if sent:
             r.attempts += 1
-            report.late_sends += after >= report.deadline_ns
+            r.slow_sends += after >= report.deadline_ns
         flight.next_send_ns = after + self._retry_ns
 
     async def _await_acks(self, report: DispatchReport, cutoff: int) -> None:
@@ -353,10 +375,11 @@ class CarLink:
                     self._transmit(flight, report)
                     self._counts["retransmits"] += 1
             now = self._clock()
-            if now >= report.deadline_ns:
+            last_ack = report.deadline_ns + self._ack_grace_ns
+            if now >= last_ack:
                 return
             resends = [f.next_send_ns for f in self._flights.values() if f.next_send_ns < cutoff]
-            wake = min([report.deadline_ns, *resends])
+            wake = min([last_ack, *resends])
             self._resolved.clear()
             if wake > now:
                 with contextlib.suppress(TimeoutError):

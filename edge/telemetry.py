@@ -150,8 +150,8 @@ class Telemetry:
         self.counts["steps"] += 1
         self.cars = record["cars"]
         for key in (
-            "on_time", "retried", "missed", "not_ready", "late_sends", "late_executions",
-            "blocked", "stopped",
+            "on_time", "retried", "missed", "not_ready", "slow_sends", "late_sends",
+            "late_executions", "blocked", "stopped",
         ):  # fmt: skip
             self.counts[key] += record.get(key, 0)
         for car, outcome in record.get("outcomes", {}).items():

@@ -176,6 +176,7 @@ def write_report(
         "steps": counts.get("steps", 0),
         "commands_on_time_share": edge.get("on_time_share"),
         "commands_missed": counts.get("missed", 0),
+        "slow_sends": counts.get("slow_sends", 0),
         "late_sends": counts.get("late_sends", 0),
         "late_executions": counts.get("late_executions", 0),
         "collisions": world.get("world", {}).get("collisions"),

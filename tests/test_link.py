@@ -289,25 +289,43 @@ async def test_a_stalled_edge_never_sends_late(clock: FakeClock) -> None:
     assert late.cars[1].result == "too_late" and late.cars[1].attempts == 0 and late.missed == 1
 
 
-async def test_late_sends_are_counted_from_the_send_times(clock: FakeClock) -> None:
-    class SlowLoop(LoopTransport):
-        """A driver that blocks 12 ms in send (longer than the whole validity)."""
+class SlowSend(LoopTransport):
+    """A driver whose send returns 11 ms late (longer than the whole validity); the car gets
+    the frame at once, or never when ``lose`` is set."""
 
-        def send(self, car_id: int, frame: bytes) -> None:
+    def __init__(self, clock: FakeClock, *, lose: bool) -> None:
+        super().__init__(fleet(2))
+        self.clock, self.lose = clock, lose
+
+    def send(self, car_id: int, frame: bytes) -> None:
+        if frame[1] != ep.MsgType.COMMAND:
             super().send(car_id, frame)
-            if frame[1] == ep.MsgType.COMMAND:
-                clock.jump_ns += 12_000_000
+            return
+        if not self.lose:
+            super().send(car_id, frame)
+        self.clock.jump_ns += 11_000_000
 
-    f = LoopFleet(2, clock, SlowLoop(fleet(2)))
-    await f.start()
-    try:
-        report = await f.link.dispatch({1: UP, 2: UP}, clock())
-    finally:
-        await f.close()
-    assert report.late_sends == 1  # car 1's send ended past the deadline
-    assert report.cars[1].attempts == 1 and not report.cars[1].acked  # and was not resent
-    assert report.cars[2].result == "too_late" and report.cars[2].attempts == 0
-    assert report.missed == 2
+
+async def test_a_slow_send_is_late_unless_the_car_accepted_it(clock: FakeClock) -> None:
+    reports = {}
+    for lose in (True, False):
+        f = LoopFleet(2, clock, SlowSend(clock, lose=lose))
+        await f.start()
+        try:
+            reports[lose] = await f.link.dispatch({1: UP, 2: UP}, clock())
+        finally:
+            await f.close()
+    lost, arrived = reports[True], reports[False]
+    for report in (lost, arrived):
+        assert report.slow_sends == 1 and report.cars[1].attempts == 1  # and was not resent
+        assert report.cars[2].result == "too_late" and report.cars[2].attempts == 0
+    assert lost.late_sends == 1 and lost.missed == 2  # nothing proves car 1's frame left in time
+    # car 1 accepted the frame, so it reached the car within its validity: the ACK, read
+    # after the deadline, proves the send was on time though the syscall returned late
+    assert arrived.late_sends == 0 and arrived.on_time == 1 and arrived.missed == 1
+    r = arrived.cars[1]
+    assert r.car_rx_us is not None and r.car_deadline_us is not None
+    assert r.car_rx_us <= r.car_deadline_us and r.acked_ns > arrived.deadline_ns
 
 
 async def test_watchdog_pause_then_resume(loop_fleet: LoopFleet, clock: FakeClock) -> None:
