@@ -30,7 +30,7 @@ from edge.fleet import Fleet
 from edge.fleetfile import FleetFileError, load_fleet, write_fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
-from edge.pauses import freeze_garbage
+from edge.pauses import freeze_garbage, run_realtime, scheduler
 from edge.runtime import LoopConfig, Runtime, WorldError
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
@@ -68,6 +68,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
+    run.add_argument(
+        "--realtime", action="store_true", help="event loop at real-time priority (SCHED_RR; "
+        "needs root or CAP_SYS_NICE)"
+    )  # fmt: skip
     out = p.add_argument_group("output")
     out.add_argument("--report", type=Path, help="write the totals as JSON here at exit")
     out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
@@ -201,6 +205,13 @@ def _last_json(text: str | None) -> dict[str, Any] | None:
     return None
 
 
+def _realtime() -> None:
+    try:
+        run_realtime()
+    except PermissionError:
+        raise UsageError("--realtime: not permitted (needs root or CAP_SYS_NICE)") from None
+
+
 def _event_loop_runner() -> Any:
     """uvloop's runner when installed (its timers wake on time; asyncio's round to 1 ms)."""
     try:
@@ -217,6 +228,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
         _writable(args.video, "--video")
+        if args.realtime:
+            _realtime()
         if args.sim:
             runner = _sim(args)
         else:
@@ -238,6 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as err:  # every car got its emergency stop in the runtime's finally
         print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
         return 1
+    report["scheduler"] = scheduler()
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=1), encoding="utf-8")
     print(f"{PROG}: {report['final']}" + (f"; report {args.report}" if args.report else ""))

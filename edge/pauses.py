@@ -1,15 +1,23 @@
-"""Python's garbage collector and deadlines.
+"""What pauses the event loop past a deadline, and how the edge avoids it.
 
-A full collection of cyclic garbage stops every thread of a process for as long as it takes to
-scan every tracked object: ~14 ms in the edge (the model, OpenCV, the modules) and ~9 ms in the
-HIL world that hosts the mock cars, more than a command's 10 ms deadline. What is loaded at
-start lives as long as the process, so it is collected once and frozen: later collections never
-scan it, and take a fraction of a millisecond.
+Python's garbage collector: a full collection of cyclic garbage stops every thread of a process
+for as long as it takes to scan every tracked object: ~14 ms in the edge (the model, OpenCV,
+the modules) and ~9 ms in the HIL world that hosts the mock cars, more than a command's 10 ms
+deadline. What is loaded at start lives as long as the process, so it is collected once and
+frozen: later collections never scan it, and take a fraction of a millisecond.
+
+The scheduler: with two cores shared by the camera, vision, and (in the HIL) the world, the
+event loop can wait ~10 ms for a core now and then, which costs a step all its commands.
+``run_realtime`` (``udan-edge --realtime``) puts the loop's thread under round-robin real-time
+scheduling, so no ordinary thread holds it up; it needs ``CAP_SYS_NICE`` (root, or ``setcap``).
 """
 
 from __future__ import annotations
 
 import gc
+import os
+
+REALTIME_PRIORITY = 10  # SCHED_RR priority (1-99): above every ordinary thread, far below IRQs
 
 
 def freeze_garbage() -> None:
@@ -18,3 +26,16 @@ def freeze_garbage() -> None:
     would measure a round trip that long)."""
     gc.collect()
     gc.freeze()
+
+
+def run_realtime(priority: int = REALTIME_PRIORITY) -> None:
+    """Schedule the calling thread ``SCHED_RR`` at ``priority``; raises ``PermissionError``
+    without ``CAP_SYS_NICE``. Threads and processes it starts later run ordinary
+    (``SCHED_RESET_ON_FORK``): the frame threads and the ``--sim`` world must not outrank it."""
+    os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+
+
+def scheduler() -> str:
+    """The calling thread's scheduling policy, for the report."""
+    policy = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
+    return {os.SCHED_RR: "SCHED_RR", os.SCHED_FIFO: "SCHED_FIFO"}.get(policy, "SCHED_OTHER")

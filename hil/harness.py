@@ -73,6 +73,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
+    run.add_argument(
+        "--edge-realtime", action="store_true", help="udan-edge --realtime (needs CAP_SYS_NICE)"
+    )
     return p
 
 
@@ -182,6 +185,8 @@ class Loop:
         ]  # fmt: skip
         if a.duration is not None:
             cmd += ["--duration", str(a.duration)]
+        if a.edge_realtime:
+            cmd.append("--realtime")
         return self._spawn("edge", cmd)
 
     async def apply_faults(self, control: tuple[str, int]) -> None:

@@ -182,6 +182,7 @@ def write_report(
         "collisions": world.get("world", {}).get("collisions"),
         "p99_ms": {name: edge["spans"][name]["p99_ms"] for name in SPAN_TITLES},
         "edge_memory_mb": edge.get("memory_mb"),
+        "edge_scheduler": edge.get("scheduler"),
         "exits": result["exits"],
     }
     summary = {

@@ -4,21 +4,33 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from edge import cli
 from edge.fleetfile import write_fleet
-from edge.pauses import freeze_garbage
+from edge.pauses import freeze_garbage, run_realtime, scheduler
 from edge.transport import free_udp_port
 
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
 MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+
+
+def _realtime_permitted() -> bool:
+    """Whether this machine lets a process take SCHED_RR (asked in a throwaway process)."""
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+
+
+REALTIME = _realtime_permitted()
 
 
 def _edge(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -100,7 +112,7 @@ def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Pat
                 UDAN_EDGE, "--camera", f"virtual://{camera}", "--model", str(MODEL),
                 "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
                 "--world", f"127.0.0.1:{control}", "--quiet",
-                "--report", str(tmp_path / "edge.json"),
+                "--report", str(tmp_path / "edge.json"), *(["--realtime"] if REALTIME else []),
             ],
             stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
@@ -121,6 +133,7 @@ def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Pat
         assert report["counts"]["estop"] == 1 and report["counts"]["steps"] > 0
         assert report["counts"]["late_sends"] <= 1  # see tests/hil/test_loop.py::_assert_safe
         assert report["counts"]["late_executions"] == 0
+        assert report["scheduler"] == ("SCHED_RR" if REALTIME else "SCHED_OTHER")
         # the garbage collector ran between steps, at least once after each one
         assert report["gc"]["collections"] >= report["counts"]["steps"]
     finally:
@@ -152,3 +165,39 @@ def test_freezing_the_garbage_leaves_loaded_objects_out_of_later_collections():
         assert gc.get_freeze_count() > 1000  # the modules this process has loaded
     finally:
         gc.unfreeze()
+
+
+def test_realtime_raises_the_calling_thread_only_and_not_what_it_starts() -> None:
+    seen: dict[str, object] = {}
+
+    def loop_thread() -> None:
+        try:
+            run_realtime()
+        except PermissionError as err:
+            seen["loop"] = err
+            return
+        seen["loop"] = scheduler()
+        frame_thread = threading.Thread(target=lambda: seen.update(frame=scheduler()))
+        frame_thread.start()
+        frame_thread.join()
+
+    thread = threading.Thread(target=loop_thread)
+    thread.start()
+    thread.join()
+    if REALTIME:
+        assert seen == {"loop": "SCHED_RR", "frame": "SCHED_OTHER"}
+    else:
+        assert isinstance(seen["loop"], PermissionError)
+    assert scheduler() == "SCHED_OTHER"  # this (the test's) thread is untouched
+
+
+def test_realtime_refused_is_one_line_and_exit_2(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def refuse(*_: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)  # a machine without CAP_SYS_NICE
+    assert cli.main(["--sim", "--realtime", "--duration", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "udan-edge: error: --realtime: not permitted (needs root or CAP_SYS_NICE)"
