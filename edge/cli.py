@@ -47,6 +47,39 @@ class UsageError(ValueError):
     """A bad option or input, reported in one line."""
 
 
+class _Interrupts:
+    """SIGINT and SIGTERM outside the run (the runtime takes them over while it drives) raise
+    ``KeyboardInterrupt``, so the ``finally`` blocks stop what was started: the ``--sim``
+    world, the link. Between ``hold`` and ``release`` one is kept for later instead."""
+
+    def __init__(self) -> None:
+        self._holding = False
+        self._held = False
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._interrupt)
+
+    def _interrupt(self, _signum: int, _frame: object) -> None:
+        if self._holding:
+            self._held = True
+            return
+        raise KeyboardInterrupt
+
+    def hold(self) -> None:
+        self._holding = True
+
+    def release(self, *, raise_held: bool = True) -> None:
+        """Stop holding; raise the interruption that came meanwhile, if one did."""
+        self._holding = False
+        held, self._held = self._held, False
+        if held and raise_held:
+            raise KeyboardInterrupt
+
+
+INTERRUPTS = _Interrupts()
+
+
 def _parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     src = p.add_argument_group("what to drive")
@@ -159,14 +192,34 @@ def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) 
     ]  # fmt: skip
     if args.video:
         cmd += ["--video", str(args.video)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
-    line = proc.stdout.readline() if proc.stdout else ""
+    INTERRUPTS.hold()  # a signal inside Popen would leave the world running and unnamed
+    proc = None
     try:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        INTERRUPTS.release()
+        line = proc.stdout.readline() if proc.stdout else ""
         ready = json.loads(line)
     except json.JSONDecodeError:
         proc.wait(10)
         raise UsageError(f"--sim: the HIL world did not start (exit {proc.returncode})") from None
+    except BaseException:  # stopped while the world was starting: it must not outlive us
+        INTERRUPTS.release(raise_held=False)
+        if proc is not None:
+            _stop_world(proc)
+        raise
     return proc, ready
+
+
+def _stop_world(proc: subprocess.Popen) -> str | None:
+    """SIGTERM the world and wait for it; returns what it printed last (its summary)."""
+    with contextlib.suppress(ProcessLookupError):
+        proc.send_signal(signal.SIGTERM)
+    try:
+        tail, _ = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        tail, _ = proc.communicate()
+    return tail
 
 
 async def _sim(args: argparse.Namespace) -> dict[str, Any]:
@@ -183,13 +236,7 @@ async def _sim(args: argparse.Namespace) -> dict[str, Any]:
         try:
             report = await _drive(args, ("127.0.0.1", ready["control_port"]))
         finally:
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
-            try:
-                tail, _ = proc.communicate(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                tail, _ = proc.communicate()
+            tail = _stop_world(proc)
         world = _last_json(tail)
         if world is not None:
             report["world"] = world
@@ -224,6 +271,7 @@ def _event_loop_runner() -> Any:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
     args = _parser().parse_args(argv)
+    INTERRUPTS.install()
     try:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
@@ -248,6 +296,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:
         print(f"{PROG}: error: {err.strerror or err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # outside the run: no car is being driven
+        print(f"{PROG}: stopped by a signal while starting or closing", file=sys.stderr)
+        return 0
     except Exception as err:  # every car got its emergency stop in the runtime's finally
         print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
         return 1

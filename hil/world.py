@@ -339,7 +339,11 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
         return image
 
     threading.Thread(target=listen, name="world mirror", daemon=True).start()
-    conn.send(("ready", None))
+    try:
+        conn.send(("ready", None))
+    except OSError:  # the world was stopped while this process started: nobody to render for
+        camera.close()
+        return
     try:
         camera.run(render, stop=halt)
     finally:
@@ -533,7 +537,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:
         print(f"{PROG}: error: {err.strerror or err}", file=sys.stderr)
         return 2
-    print(json.dumps(summary), flush=True)
+    with contextlib.suppress(BrokenPipeError):  # whoever started us is gone: nobody to tell
+        print(json.dumps(summary), flush=True)
     return 0
 
 

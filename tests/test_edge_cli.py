@@ -159,6 +159,40 @@ def test_sim_runs_the_whole_loop_and_reports(tmp_path: Path) -> None:
     assert "steps" in done.stdout and str(report) in done.stdout
 
 
+def _processes_naming(text: str) -> list[int]:
+    """Pids of the processes whose command line contains ``text``."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and text in (proc / "cmdline").read_text():
+                found.append(int(proc.name))
+        except OSError:
+            continue  # it ended while we looked
+    return found
+
+
+def test_sigterm_while_starting_stops_the_sim_world_too() -> None:
+    """The world runs in its own session: the edge must stop it, however early it is told to."""
+    edge = subprocess.Popen(
+        [UDAN_EDGE, "--sim", "--cars", "1", "--duration", "30", "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    world = f"udan-sim-{edge.pid}"
+    try:
+        deadline = time.monotonic() + 30
+        while not _processes_naming(world) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert _processes_naming(world), "the world never started"
+        edge.send_signal(signal.SIGTERM)  # the edge is still starting: waiting for the world
+        out, err = edge.communicate(timeout=30)
+    finally:
+        edge.kill()
+    assert edge.returncode == 0, err
+    lines = (out + err).strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("udan-edge: "), lines
+    assert _processes_naming(world) == []
+
+
 def test_freezing_the_garbage_leaves_loaded_objects_out_of_later_collections():
     freeze_garbage()
     try:
