@@ -188,33 +188,26 @@ def _encoder(g: _Graph, w: Mapping[str, np.ndarray], hidden: int, skippable: boo
     if not skippable:
         return g.op("Squeeze", "h_out", g.const(0))
     e.op("Squeeze", "h_new", e.const(0), out="feats_new")
-    state = [1, "agents", hidden]
-    run = helper.make_graph(
-        e.nodes,
-        "encode",
-        [],
-        [
-            _value("h_new", F32, state),
-            _value("c_new", F32, state),
-            _value("feats_new", F32, ["agents", hidden]),
-        ],
-    )
     t = g.sub()
     t.op("Identity", "h", out="h_given")
     t.op("Identity", "c", out="c_given")
     t.op("Squeeze", "h", t.const(0), out="feats_given")
-    given = helper.make_graph(
-        t.nodes,
-        "encoded",
-        [],
-        [
-            _value("h_given", F32, state),
-            _value("c_given", F32, state),
-            _value("feats_given", F32, ["agents", hidden]),
-        ],
-    )
+    given = _encoder_branch(t, "encoded", "given", hidden)
+    run = _encoder_branch(e, "encode", "new", hidden)
     g.op("If", "encoded", out=["h_out", "c_out", "feats"], then_branch=given, else_branch=run)
     return "feats"
+
+
+def _encoder_branch(b: _Graph, name: str, suffix: str, hidden: int) -> onnx.GraphProto:
+    """One branch of the encoder's ``If``: its nodes, giving ``h_``, ``c_`` and ``feats_`` +
+    ``suffix``."""
+    state = [1, "agents", hidden]
+    outputs = [
+        _value(f"h_{suffix}", F32, state),
+        _value(f"c_{suffix}", F32, state),
+        _value(f"feats_{suffix}", F32, ["agents", hidden]),
+    ]
+    return helper.make_graph(b.nodes, name, [], outputs)
 
 
 def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
