@@ -177,14 +177,24 @@ def test_onnx_policy_acts_exactly_like_the_torch_actor(checkpoints, tmp_path, al
     assert algo != "udan" or formed > 0
 
 
+BOUND_AGENTS = 6
+BOUND_GROUPS = np.array([[0, 1, 2], [3, 2, 4]])  # agent 2 bridges the two groups
+
+
+def _bound_on_random_state(path, seed: int):
+    """The graph, a generator, a random state (h, c) of ``BOUND_AGENTS`` slots and a
+    ``BoundGraph`` starting from a copy of it."""
+    graph = PolicyGraph(path)
+    rng = np.random.default_rng(seed)
+    shape = (1, BOUND_AGENTS, int(graph.metadata["hidden"]))
+    h, c = (rng.standard_normal(shape, dtype=np.float32) for _ in range(2))
+    return graph, rng, h, c, BoundGraph(graph, h.copy(), c.copy())
+
+
 def test_bound_calls_match_single_calls_step_after_step(udan_policy):
     """BoundGraph's two bindings take turns on the state: the same outputs as one call each."""
-    graph = PolicyGraph(udan_policy)
-    n, hidden = 6, int(graph.metadata["hidden"])
-    rng = np.random.default_rng(2)
-    h, c = (rng.standard_normal((1, n, hidden), dtype=np.float32) for _ in range(2))
-    bound = BoundGraph(graph, h.copy(), c.copy())
-    groups = np.array([[0, 1, 2], [3, 2, 4]])
+    graph, rng, h, c, bound = _bound_on_random_state(udan_policy, seed=2)
+    n, groups = BOUND_AGENTS, BOUND_GROUPS
     bound.bind_groups(groups)
     for _ in range(3):
         obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
@@ -199,12 +209,8 @@ def test_bound_calls_match_single_calls_step_after_step(udan_policy):
 def test_a_formation_step_scores_then_acts_from_the_same_features(udan_policy):
     """The scoring call and the ``encoded`` call of a formation step give what one call with
     the neighbours and the groups gives, and leave the same state: the encoder ran once."""
-    graph = PolicyGraph(udan_policy)
-    n, hidden = 6, int(graph.metadata["hidden"])
-    rng = np.random.default_rng(4)
-    h, c = (rng.standard_normal((1, n, hidden), dtype=np.float32) for _ in range(2))
-    bound = BoundGraph(graph, h.copy(), c.copy())
-    groups = np.array([[0, 1, 2], [3, 2, 4]])
+    graph, rng, h, c, bound = _bound_on_random_state(udan_policy, seed=4)
+    n, groups = BOUND_AGENTS, BOUND_GROUPS
     table = neighbour_table(rng.integers(0, 9, (n, 2)), np.ones(n, bool), 8)
     for _ in range(3):
         obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
