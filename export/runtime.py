@@ -133,8 +133,14 @@ class BoundGraph:
         return self.states[self.turn]
 
     def bind_groups(self, groups: np.ndarray) -> None:
-        """Groups (G, s) in priority order for the calls from now on."""
+        """Groups (G, s) in priority order for the calls from now on. Copied into the bound
+        buffers when they have the same shapes (a steady fleet: binding costs ~10 µs an
+        input), bound anew otherwise."""
         rounds = round_inputs(groups)
+        if all(rounds[name].shape == self.inputs[name].shape for name in rounds):
+            for name, array in rounds.items():
+                np.copyto(self.inputs[name], array)
+            return
         self.inputs.update(rounds)
         for binding in self.bindings:
             for name, array in rounds.items():

@@ -192,11 +192,12 @@ def _bound_on_random_state(path, seed: int):
 
 
 def test_bound_calls_match_single_calls_step_after_step(udan_policy):
-    """BoundGraph's two bindings take turns on the state: the same outputs as one call each."""
+    """BoundGraph's two bindings take turns on the state: the same outputs as one call each,
+    with groups of the same shapes copied into the bound buffers, and of other shapes bound."""
     graph, rng, h, c, bound = _bound_on_random_state(udan_policy, seed=2)
-    n, groups = BOUND_AGENTS, BOUND_GROUPS
-    bound.bind_groups(groups)
-    for _ in range(3):
+    n = BOUND_AGENTS
+    for groups in (BOUND_GROUPS, BOUND_GROUPS[::-1], BOUND_GROUPS[1:], np.array([[5, 0, 1]])):
+        bound.bind_groups(groups)
         obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
         feeds = {"obs": obs, "h": h, "c": c, "neighbours": no_neighbours(n)}
         want = graph.run({**feeds, **round_inputs(groups)})
