@@ -3,9 +3,9 @@
 For networks this small onnxruntime's cost is mostly a fixed price per node (about a
 microsecond) and per ``LSTM`` op (about ten), so the graph is written with as few nodes as the
 computation allows rather than traced: Gemm layers, one ONNX ``LSTM`` op for the agents'
-memory and one per round for the group BiLSTM, a ``Loop`` over the bridge rounds, the leader
-scores under an ``If``. That it computes what the model's own modules compute is checked on
-every export (:mod:`export.verify`). Layout and reasons: export/README.md.
+memory and one per round for the group BiLSTM, a ``Loop`` over the bridge rounds, and an ``If``
+that either scores leaders or runs the Q head. That it computes what the model's own modules
+compute is checked on every export (:mod:`export.verify`). Layout and reasons: export/README.md.
 """
 
 from __future__ import annotations
@@ -69,7 +69,8 @@ class _Graph:
 
     def weight(self, hint: str, array: np.ndarray) -> str:
         name = self._name(hint)
-        self.weights.append(numpy_helper.from_array(np.ascontiguousarray(array), name))
+        array = np.ascontiguousarray(array) if array.ndim else array  # it makes 0-d arrays 1-d
+        self.weights.append(numpy_helper.from_array(array, name))
         return name
 
     def const(self, *values: int | float, scalar: bool = False) -> str:
@@ -116,21 +117,10 @@ def build_graph(model: MultiAgentQ, metadata: Mapping[str, str]) -> onnx.ModelPr
     }
     g = _Graph()
     feats = _encoder(g, w, hidden, skippable=spec.communicates)
-    w_head = w["head.net.0.weight"].T  # (2 * hidden, hidden): features, then message
-    z = g.op(
-        "Gemm", feats, g.weight("head_w", w_head[:hidden]), g.weight("head_b", w["head.net.0.bias"])
-    )
     if spec.communicates:
-        _leader(g, w, feats)
-        message = _communicate(g, w, feats, hidden)  # (N, hidden + 1): the flag column last
-        w_message = np.pad(w_head[hidden:], ((0, 1), (0, 0)))
-        z = g.op("Gemm", message, g.weight("head_w_message", w_message), z)
-    w_out, b_out = (
-        g.weight("head_w_q", w["head.net.2.weight"].T),
-        g.weight("head_b_q", w["head.net.2.bias"]),
-    )
-    q = g.op("Gemm", g.op("Relu", z), w_out, b_out, out="q")
-    g.op("ArgMax", q, axis=1, keepdims=0, out="action")
+        _score_or_act(g, w, feats, hidden, spec.n_actions)
+    else:
+        _head(g, w, feats, hidden, message=None, suffix="")
 
     state = [1, "agents", hidden]
     inputs = [
@@ -210,15 +200,83 @@ def _encoder_branch(b: _Graph, name: str, suffix: str, hidden: int) -> onnx.Grap
     return helper.make_graph(b.nodes, name, [], outputs)
 
 
-def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
-    """``leader_logits`` under an ``If``: the attention when ``neighbours`` has columns, else
-    zeros. Leader scores are needed at group-formation steps only; every other call passes
-    ``neighbours`` with no columns and skips the attention."""
-    s = g.sub()
+def _score_or_act(
+    g: _Graph, w: Mapping[str, np.ndarray], feats: str, hidden: int, n_actions: int
+) -> None:
+    """The communication rounds, then an ``If`` on whether ``neighbours`` has columns. A
+    scoring call (it has: the first call of a group-formation step, bound with no groups)
+    computes ``leader_logits`` and leaves ``q`` and ``action`` zero, as its actions are never
+    used: the step's second call acts with the groups. Any other call runs the Q head, and its
+    ``leader_logits`` are zero. The rounds' ``Loop`` stays outside the ``If``: nested in a
+    branch it cost ~20 µs more a call at N = 5."""
+    message = _communicate(g, w, feats, hidden)  # (N, hidden + 1): the flag column last
+    scored = g.sub()
+    _leader(scored, w, feats)
+    rows = scored.op("Shape", feats, end=1)
+    _zeros(scored, scored.op("Concat", rows, scored.const(n_actions), axis=0), F32, "q_scored")
+    _zeros(scored, rows, I64, "action_scored")
+    score = helper.make_graph(
+        scored.nodes, "score", [], _outputs(n_actions, "q_scored", "action_scored", "leader_scores")
+    )
+
+    acted = g.sub()
+    _head(acted, w, feats, hidden, message, suffix="_acted")
+    _zeros(acted, acted.op("Shape", feats, end=1), F32, "unscored")
+    act = helper.make_graph(
+        acted.nodes, "act", [], _outputs(n_actions, "q_acted", "action_acted", "unscored")
+    )
+
+    wanted = g.op("Greater", g.op("Size", "neighbours"), g.const(0, scalar=True))
+    g.op("If", wanted, out=["q", "action", "leader_logits"], then_branch=score, else_branch=act)
+
+
+def _zeros(g: _Graph, shape: str, elem: int, out: str) -> None:
+    """``out``: zeros of ``elem`` type and the (1-D tensor) ``shape``."""
+    value = helper.make_tensor("zero", elem, [1], [0])
+    g.op("ConstantOfShape", shape, out=out, value=value)
+
+
+def _outputs(n_actions: int, q: str, action: str, logits: str) -> list[onnx.ValueInfoProto]:
+    """A branch's outputs, named ``q``, ``action``, ``logits``, in the ``If``'s order."""
+    return [
+        _value(q, F32, ["agents", n_actions]),
+        _value(action, I64, ["agents"]),
+        _value(logits, F32, ["agents"]),
+    ]
+
+
+def _head(
+    g: _Graph,
+    w: Mapping[str, np.ndarray],
+    feats: str,
+    hidden: int,
+    message: str | None,
+    suffix: str,
+) -> None:
+    """The Q head on the features and, for UDAN, the message: writes ``q`` and ``action``
+    + ``suffix``."""
+    w_head = w["head.net.0.weight"].T  # (2 * hidden, hidden): features, then message
+    z = g.op(
+        "Gemm", feats, g.weight("head_w", w_head[:hidden]), g.weight("head_b", w["head.net.0.bias"])
+    )
+    if message is not None:
+        w_message = np.pad(w_head[hidden:], ((0, 1), (0, 0)))
+        z = g.op("Gemm", message, g.weight("head_w_message", w_message), z)
+    w_out, b_out = (
+        g.weight("head_w_q", w["head.net.2.weight"].T),
+        g.weight("head_b_q", w["head.net.2.bias"]),
+    )
+    q = g.op("Gemm", g.op("Relu", z), w_out, b_out, out=f"q{suffix}")
+    g.op("ArgMax", q, axis=1, keepdims=0, out=f"action{suffix}")
+
+
+def _leader(s: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
+    """The leader attention over the ``neighbours`` table: writes ``leader_scores`` (N,)."""
     # Folded: a query against W_k f_j + b_k is (W_k^T q) . f_j plus a term equal for every j,
     # which the softmax drops; the value and output layers are linear after the attention
-    # weights, which sum to 1. So the gathered rows are the features themselves, and no key
-    # or value is computed.
+    # weights, which sum to 1, so the attended part of the score is the attention-weighted
+    # sum of one number per agent, f_j . (w_out W_v). No key or value is computed, and no
+    # attended (N, H) vector either.
     w_q, b_q = w["leader.query.weight"], w["leader.query.bias"]  # (A, H), (A,)
     w_k, w_v = w["leader.key.weight"], w["leader.value.weight"]
     scale = np.float32(w_k.shape[0] ** -0.5)
@@ -232,30 +290,24 @@ def _leader(g: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
     )
     rows = s.op("Max", "neighbours", s.const(0, scalar=True))  # -1 (none) reads row 0, masked
     near = s.op("Gather", feats, rows)  # (N, K, H)
-    scores = s.op(
-        "ReduceSum",
-        s.op("Mul", s.op("Unsqueeze", query, s.const(1)), near),
-        s.const(-1),
-        keepdims=0,
-    )
+    scores = s.op("MatMul", near, s.op("Unsqueeze", query, s.const(-1)))  # (N, K, 1)
+    scores = s.op("Squeeze", scores, s.const(-1))
     there = s.op("GreaterOrEqual", "neighbours", s.const(0, scalar=True))
     scores = s.op("Where", there, scores, s.const(NO_NEIGHBOUR, scalar=True))
-    attn = s.op("Unsqueeze", s.op("Softmax", scores, axis=-1), s.const(-1))
-    attended = s.op("ReduceSum", s.op("Mul", attn, near), s.const(1), keepdims=0)  # (N, H)
-    b_own = w["leader.out.bias"] + w_attended @ w["leader.value.bias"]
-    own = s.op("Gemm", feats, s.weight("leader_w_own", w_own[:, None]), s.weight("leader_b", b_own))
-    w_near = (w_attended @ w_v)[:, None]  # (H, 1)
-    logits = s.op("Gemm", attended, s.weight("leader_w_near", w_near), own)
-    s.op("Reshape", logits, s.const(-1), out="scores")
-    scored = helper.make_graph(s.nodes, "scored", [], [_value("scores", F32, ["agents"])])
-
-    z = g.sub()
-    zero = helper.make_tensor("zero", F32, [1], [0.0])
-    z.op("ConstantOfShape", z.op("Shape", feats, end=1), out="zeros", value=zero)
-    unscored = helper.make_graph(z.nodes, "unscored", [], [_value("zeros", F32, ["agents"])])
-
-    wanted = g.op("Greater", g.op("Size", "neighbours"), g.const(0, scalar=True))
-    g.op("If", wanted, out="leader_logits", then_branch=scored, else_branch=unscored)
+    attn = s.op("Softmax", scores, axis=-1)  # (N, K)
+    # per agent: what it adds to a score as a neighbour (column 0), and its own part (column 1)
+    w_parts = np.stack([w_attended @ w_v, w_own], axis=1)  # (H, 2)
+    b_own = w["leader.out.bias"][0] + w_attended @ w["leader.value.bias"]
+    parts = s.op(
+        "Gemm",
+        feats,
+        s.weight("leader_w", w_parts),
+        s.weight("leader_b", np.array([0, b_own], np.float32)),
+    )
+    as_neighbour = s.op("Gather", parts, s.const(0, scalar=True), axis=1)  # (N,)
+    own = s.op("Gather", parts, s.const(1, scalar=True), axis=1)
+    attended = s.op("Mul", attn, s.op("Gather", as_neighbour, rows))  # (N, K)
+    s.op("Add", s.op("ReduceSum", attended, s.const(1), keepdims=0), own, out="leader_scores")
 
 
 def _communicate(g: _Graph, w: Mapping[str, np.ndarray], feats: str, hidden: int) -> str:

@@ -18,7 +18,7 @@ from udan.envs.observe import CHANNELS, FEATURES, OBS_SPEC_VERSION, ObsSpec
 from udan.envs.rules import ACTIONS
 
 FORMAT = "udan-policy"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 #: Every key an exported policy has, with what it means (also the list ``verify`` reports from).
 KEYS: dict[str, str] = {

@@ -208,15 +208,21 @@ def test_bound_calls_match_single_calls_step_after_step(udan_policy):
 
 
 def test_a_formation_step_scores_then_acts_from_the_same_features(udan_policy):
-    """The scoring call and the ``encoded`` call of a formation step give what one call with
-    the neighbours and the groups gives, and leave the same state: the encoder ran once."""
+    """The scoring call and the ``encoded`` call of a formation step give the leader scores of
+    one call with the neighbours and the actions of one call without, and leave the same state:
+    the encoder ran once. A scoring call's own q and actions are zero (never used)."""
     graph, rng, h, c, bound = _bound_on_random_state(udan_policy, seed=4)
     n, groups = BOUND_AGENTS, BOUND_GROUPS
     table = neighbour_table(rng.integers(0, 9, (n, 2)), np.ones(n, bool), 8)
     for _ in range(3):
         obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
-        want = graph.run({"obs": obs, "h": h, "c": c, "neighbours": table, **round_inputs(groups)})
-        assert np.array_equal(bound.score(obs, table), want["leader_logits"])
+        feeds = {"obs": obs, "h": h, "c": c, **round_inputs(groups)}
+        scored = graph.run({**feeds, "neighbours": table})
+        assert not scored["q"].any() and not scored["action"].any()
+        want = graph.run({**feeds, "neighbours": no_neighbours(n)})
+        assert not want["leader_logits"].any()
+        assert np.array_equal(scored["h_out"], want["h_out"])
+        assert np.array_equal(bound.score(obs, table), scored["leader_logits"])
         bound.bind_groups(groups)
         assert np.array_equal(bound.run_encoded(), want["action"])
         assert np.array_equal(bound.q, want["q"])
