@@ -63,17 +63,20 @@ class DecisionStep:
         self.policy = policy
         self.task = task
         self.spec = spec
+        self.owner = np.zeros(0, np.int64)
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: memories, last actions and rewards, returns, the step counter."""
-        self.policy.reset(0)
+        """A new episode: memories, last actions and rewards, returns, the step counter. The
+        slots stay (empty), so the policy keeps its bindings for the same fleet."""
+        slots = len(self.owner)
+        self.policy.reset(slots)
         self.t = 0
-        self.owner = np.zeros(0, np.int64)  # car id per slot, -1 for none
-        self.last_action = np.zeros(0, np.int64)
-        self.last_reward = np.zeros(0, np.float32)
-        self.expected = np.zeros((0, 2), np.int64)  # -1: no expectation
-        self.slot_return = np.zeros(0, np.float64)
+        self.owner = np.full(slots, -1, np.int64)  # car id per slot, -1 for none
+        self.last_action = np.full(slots, -1, np.int64)
+        self.last_reward = np.zeros(slots, np.float32)
+        self.expected = np.full((slots, 2), -1, np.int64)  # -1: no expectation
+        self.slot_return = np.zeros(slots, np.float64)
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
 

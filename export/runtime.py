@@ -193,12 +193,18 @@ class OnnxPolicy:
         self.interval = int(meta["group_interval"])
         self.threshold = float(meta["leader_threshold"])
         self.neighbours = int(meta["attention_neighbours"])
+        self._steps: BoundGraph | None = None
         self.reset(0)
 
     def reset(self, slots: int) -> None:
-        """Forget every agent's memory and the groups; the next step forms groups."""
-        state = np.zeros((1, slots, self.hidden), np.float32)
-        self._steps = BoundGraph(self.graph, state, state.copy())
+        """Forget every agent's memory and the groups; the next step forms groups. The graph's
+        bindings are kept when the number of slots is unchanged (binding anew costs ~0.3 ms)."""
+        if self._steps is not None and len(self._steps.obs) == slots:
+            for state in self._steps.state:
+                state.fill(0.0)
+        else:
+            state = np.zeros((1, slots, self.hidden), np.float32)
+            self._steps = BoundGraph(self.graph, state, state.copy())
         self.groups = np.zeros((0, 0), np.int64)
         self.t = 0
         self.reform = False

@@ -110,14 +110,22 @@ def test_task_of() -> None:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_decision_step_drives_like_the_simulation(seed: int) -> None:
     """The edge's masking + policy + safety filter, fed the cells the camera would see, gives
-    the same episode as the simulator stepping the same policy on the same layout."""
+    the same episode as the simulator stepping the same policy on the same layout; and again
+    for a second episode after a reset (nothing of the first is remembered)."""
     cfg = ArenaConfig(task="find_water", agents=(1, 5), obstacles=(0, 9))
     sim, edge_world = ArenaBatch(cfg, 1, seed=seed), ArenaBatch(cfg, 1, seed=seed)
-    sim.reset()
-    edge_world.reset()
     reference = OnnxPolicy(MODEL, expected=cfg.spec)
-    reference.reset(sim.slots)
     step = DecisionStep(OnnxPolicy(MODEL, expected=cfg.spec), "find_water", cfg.spec)
+    for episode in range(2):
+        sim.reset()
+        edge_world.reset()
+        reference.reset(sim.slots)
+        if episode:
+            step.reset()
+        _drive_one_episode(cfg, sim, edge_world, reference, step)
+
+
+def _drive_one_episode(cfg, sim, edge_world, reference, step) -> None:
     fresh = np.ones(sim.slots, bool)
     static = _static_cells(edge_world.layout[0])
     slots = {int(s) + 1: int(s) for s in np.flatnonzero(edge_world.present[0])}

@@ -271,6 +271,27 @@ def test_the_policy_grows_with_the_fleet(udan_policy):
         assert actions.shape == (n,) and policy.h.shape == (1, n, policy.hidden)
 
 
+def test_a_reset_forgets_everything_and_keeps_the_bindings(udan_policy):
+    """After some steps and a reset, the policy acts as a new one does, with no agent marked
+    fresh; for the same number of slots it keeps its bound graph."""
+    n = 5
+    used, new = OnnxPolicy(udan_policy), OnnxPolicy(udan_policy)
+    used.reset(n)
+    new.reset(n)
+    rng = np.random.default_rng(3)
+    obs = rng.random((4, n, int(used.graph.metadata["obs_dim"])), dtype=np.float32)
+    pos, present, fresh = rng.integers(0, 9, (n, 2)), np.ones(n, bool), np.zeros(n, bool)
+    for step_obs in obs[:3]:
+        used.act(step_obs, present, pos, fresh)
+    bound = used._steps
+    used.reset(n)
+    assert used._steps is bound
+    assert np.array_equal(
+        used.act(obs[3], present, pos, fresh), new.act(obs[3], present, pos, fresh)
+    )
+    assert np.array_equal(used.q, new.q) and np.array_equal(used.h, new.h)
+
+
 def test_export_writes_beside_the_checkpoint_and_verify_passes(checkpoints, capsys):
     ckpt = checkpoints["vdn"]
     assert main([str(ckpt), "--sizes", "1,3"]) == 0
