@@ -25,6 +25,7 @@ from udan.envs.observe import ObsSpec, observe
 from udan.envs.rules import ACTION_DELTAS, OBSTACLE, WAIT, WALL, WATER
 
 _KIND_CODES = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+COMMAND_DELTAS = np.insert(ACTION_DELTAS, STOP, [0, 0], axis=0)  # (d_row, d_col) per command
 TASKS = ("find_water", "surround")
 
 
@@ -123,23 +124,19 @@ class DecisionStep:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
-        rewards = self._settle(cars, idx, fresh, layout, pos, present, target)
+        fresh_mask = np.zeros(len(self.owner), bool)
+        if fresh:
+            fresh_mask[[slots[c] for c in fresh if c in slots]] = True
+        rewards = self._settle(cars, idx, fresh_mask, layout, pos, present, target)
         codes = scene_codes(padded, pos, present, self.spec.view, target)
         obs = observe(
             self.spec, codes, pos, self.last_action[None], self.last_reward[None], present
         )[0]
-        fresh_mask = np.zeros(len(self.owner), bool)
-        fresh_mask[[slots[c] for c in fresh if c in slots]] = True
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
         blockers = list(others or []) + sorted(static.get("target", ()))
-        in_move = np.zeros(len(cars), bool)
-        doing = np.full(len(cars), WAIT, np.int64)
-        if moving:
-            in_move[:] = [c in moving for c in cars.tolist()]
-            doing[:] = [moving.get(c, WAIT) for c in cars.tolist()]
-        filtered = self._filter(layout, idx, pos[0, idx], actions, blockers, in_move, doing)
+        filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, moving)
         self.t += 1
         t3 = time.perf_counter_ns()
         return Decision(
@@ -164,7 +161,9 @@ class DecisionStep:
             return np.zeros(len(slots), np.float32)
         layout, _ = self.layout(static)
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
-        return self._settle(cars, idx, set(), layout, pos, present, target)
+        return self._settle(
+            cars, idx, np.zeros(len(self.owner), bool), layout, pos, present, target
+        )
 
     def _scene(
         self,
@@ -203,17 +202,16 @@ class DecisionStep:
         self,
         cars: np.ndarray,
         idx: np.ndarray,
-        fresh: set[int],
+        fresh: np.ndarray,
         layout: np.ndarray,
         pos: np.ndarray,
         present: np.ndarray,
         target: np.ndarray | None,
     ) -> np.ndarray:
         """Each car's reward for the step that ended (the arena's own reward code), added to its
-        return; a car new to its slot starts with no last action, no reward, no return."""
-        new = self.owner[idx] != cars
-        if fresh:
-            new |= np.isin(cars, np.fromiter(fresh, np.int64, len(fresh)))
+        return; a car new to its slot, or ``fresh`` (per slot), starts with no last action, no
+        reward, no return."""
+        new = (self.owner[idx] != cars) | fresh[idx]
         for slot in idx[new & (self.owner[idx] >= 0)]:
             old = int(self.owner[slot])
             self._banked[old] = self._banked.get(old, 0.0) + float(self.slot_return[slot])
@@ -235,22 +233,27 @@ class DecisionStep:
     def _filter(
         self,
         layout: np.ndarray,
+        cars: np.ndarray,
         idx: np.ndarray,
         car_pos: np.ndarray,
         actions: np.ndarray,
         others: list[tuple[int, int]],
-        in_move: np.ndarray,
-        doing: np.ndarray,
+        moving: Mapping[int, int] | None,
     ) -> Filtered:
         """The safety filter, then where each car's command should take it (checked next step).
         Cars still in a move are not checked and hold the cell they are heading for."""
-        held = car_pos[in_move] + ACTION_DELTAS[doing[in_move]]
-        blockers = np.concatenate([np.array(others, np.int64).reshape(-1, 2), held])
-        expected = np.where(in_move[:, None], -1, self.expected[idx])
-        wanted = np.where(in_move, WAIT, actions)
+        expected, wanted, in_move = self.expected[idx], actions, None
+        if moving:
+            in_move = np.fromiter((c in moving for c in cars.tolist()), bool, len(cars))
+            doing = np.fromiter((moving[c] for c in cars[in_move].tolist()), np.int64)
+            others = others + (car_pos[in_move] + ACTION_DELTAS[doing]).tolist()
+            expected = np.where(in_move[:, None], -1, expected)
+            wanted = np.where(in_move, WAIT, actions)
+        blockers = np.array(others, np.int64).reshape(-1, 2)
         filtered = filter_moves(layout, car_pos, wanted, expected=expected, others=blockers)
-        commands = filtered.commands
         self.last_action[idx] = actions
-        step_to = car_pos + ACTION_DELTAS[np.where(commands == STOP, WAIT, commands)]
-        self.expected[idx] = np.where(in_move[:, None], -1, step_to)
+        step_to = car_pos + COMMAND_DELTAS[filtered.commands]
+        if in_move is not None:
+            step_to[in_move] = -1
+        self.expected[idx] = step_to
         return filtered

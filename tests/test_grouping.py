@@ -100,6 +100,9 @@ def test_groups_from_a_precomputed_neighbour_table_equal_a_fresh_search():
         present = rng.random(n) < 0.8
         k, width = int(rng.integers(1, 5)), int(rng.integers(1, 10))
         table = neighbour_table(pos, present, width)
+        near = nearest(pos, present, width)
+        assert table.shape == (n, width) and (table[:, near.shape[1] :] == -1).all()
+        assert (table[:, : near.shape[1]] == near).all()
         assert (
             hypothetical_groups(pos, present, k, table) == hypothetical_groups(pos, present, k)
         ).all()

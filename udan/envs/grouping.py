@@ -108,6 +108,8 @@ def _band(near: int, far: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def neighbour_table(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     """:func:`nearest` padded to exactly ``count`` columns with -1 (a fixed-width input)."""
+    if len(present) <= RING_SEARCH_FROM:  # all pairs, padded as they are sorted
+        return _nearest_all_pairs(pos[None], present[None], count)[0]
     near = nearest(pos, present, count)
     out = np.full((len(present), count), -1, dtype=np.int64)
     out[:, : near.shape[1]] = near
