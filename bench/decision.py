@@ -88,7 +88,7 @@ def main() -> int:
         ArenaConfig(
             task="surround", agents=(1000, 1000), obstacles=(200, 200), height=100, width=100
         ),
-        steps=300,
+        steps=1000,
     )
     print(json.dumps({"threads": 1, "sizes": [small, large]}, indent=1))
     return 0
