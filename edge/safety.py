@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from udan.envs.rules import ACTION_DELTAS, FREE, WAIT, resolve_moves
+from udan.envs.rules import FREE, WAIT, resolve_moves
 
 STOP = 5  # edge.protocol.Action.STOP: halt the motors
 
@@ -56,8 +56,7 @@ def filter_moves(
         others = others[(others >= 0).all(1) & (others < layout.shape).all(1)]
         passable[others[:, 0], others[:, 1]] = False
     dest = resolve_moves(pos[None], moving[None], passable[None], np.ones((1, len(pos)), bool))[0]
-    wanted = pos + ACTION_DELTAS[moving]
-    blocked = (moving != WAIT) & (dest != wanted).any(axis=1)
+    blocked = (moving != WAIT) & (dest == pos).all(axis=1)  # a move that did not happen
     commands = np.where(blocked, WAIT, moving)
     commands[stopped] = STOP
     return Filtered(commands=commands, blocked=blocked, stopped=stopped)

@@ -42,17 +42,23 @@ def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.n
     (M, N, count) slots, -1 where fewer agents are present.
 
     A pair's key is ``distance * N + slot`` (itself: ``slot - N``, first), so sorting the keys
-    orders by distance then slot, and ``key % N`` gives the slot back."""
+    orders by distance then slot, and ``key % N`` gives the slot back; an absent agent's row
+    and column are all ``absent``, which sorts last."""
     m, n = present.shape
     absent = np.iinfo(np.int64).max
-    key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + np.arange(n)
-    key[:, np.arange(n), np.arange(n)] -= n
-    key = np.where(present[:, None, :], key, absent)
+    key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + _slot_keys(n)
+    key = np.where(present[:, None, :] & present[:, :, None], key, absent)
     key.sort(axis=2)
     out = np.full((m, n, count), -1, dtype=np.int64)
     near = key[:, :, :count]
-    out[:, :, : near.shape[2]] = np.where(present[:, :, None] & (near != absent), near % n, -1)
+    out[:, :, : near.shape[2]] = np.where(near != absent, near % n, -1)
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def _slot_keys(n: int) -> np.ndarray:
+    """(N, N): each column's slot, less N on the diagonal (an agent comes first in its row)."""
+    return np.arange(n) - n * np.eye(n, dtype=np.int64)
 
 
 def _nearest_by_rings(cells: np.ndarray, slots: np.ndarray, size: int) -> np.ndarray | None:

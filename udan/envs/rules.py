@@ -56,9 +56,9 @@ def resolve_moves(
     n_batch, height, width = passable.shape
     cells = height * width
     dest = intended_cells(pos, actions, passable)
-    offset = (np.arange(n_batch) * cells)[:, None]
-    cur = (pos[..., 0] * width + pos[..., 1] + offset)[present]
-    dst = (dest[..., 0] * width + dest[..., 1] + offset)[present]
+    offset = (np.arange(n_batch) * cells)[:, None]  # arenas side by side, cells numbered flat
+    cur = (pos @ np.array([width, 1]) + offset)[present]
+    dst = (dest @ np.array([width, 1]) + offset)[present]
     if cur.size == 0:
         return pos.copy()
     occupant = np.full(n_batch * cells, -1, dtype=np.int64)
@@ -73,9 +73,9 @@ def resolve_moves(
             break
         dst = np.where(blocked, cur, dst)
         moving &= ~blocked
-    out = pos.copy()
-    out[present] = np.where((dst != cur)[:, None], dest[present], pos[present])  # moved or not
-    return out
+    moved = np.zeros(present.shape, dtype=bool)
+    moved[present] = dst != cur
+    return np.where(moved[..., None], dest, pos)
 
 
 def manhattan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
