@@ -212,20 +212,23 @@ class DecisionStep:
         return; a car new to its slot, or ``fresh`` (per slot), starts with no last action, no
         reward, no return."""
         new = (self.owner[idx] != cars) | fresh[idx]
-        for slot in idx[new & (self.owner[idx] >= 0)]:
-            old = int(self.owner[slot])
-            self._banked[old] = self._banked.get(old, 0.0) + float(self.slot_return[slot])
-        self.owner[idx] = cars
-        renew = idx[new]
-        self.last_action[renew] = -1
-        self.last_reward[renew] = 0.0
-        self.expected[renew] = -1
-        self.slot_return[renew] = 0.0
+        arrived = new.any()  # rare once the fleet is steady
+        if arrived:
+            for slot in idx[new & (self.owner[idx] >= 0)]:
+                old = int(self.owner[slot])
+                self._banked[old] = self._banked.get(old, 0.0) + float(self.slot_return[slot])
+            self.owner[idx] = cars
+            renew = idx[new]
+            self.last_action[renew] = -1
+            self.last_reward[renew] = 0.0
+            self.expected[renew] = -1
+            self.slot_return[renew] = 0.0
         rewards = np.zeros(len(cars), np.float32)
         if self.t > 0:
             step = np.array([self.t])
             rewards = task_rewards(self.task, layout[None], pos, present, target, step)[0][idx]
-            rewards[new] = 0.0
+            if arrived:
+                rewards[new] = 0.0
             self.last_reward[idx] = rewards
             self.slot_return[idx] += rewards
         return rewards
