@@ -91,10 +91,10 @@ def _nearest_by_rings(cells: np.ndarray, slots: np.ndarray, size: int) -> np.nda
         key = np.sort((row * (far + 1) + dist[col]) * scale + hits[flat])
         row = key // ((far + 1) * scale)
         counts = np.bincount(row, minlength=need.size)
-        rank = np.arange(key.size) - (np.cumsum(counts) - counts)[row]
         room = size - have[need]
-        ok = rank < room[row]
-        found[need[row[ok]], have[need[row[ok]]] + rank[ok]] = key[ok] % scale
+        at = (need * size + have[need] - (np.cumsum(counts) - counts))[row] + np.arange(key.size)
+        ok = at < (need * size + size)[row]  # within the row's room
+        found.ravel()[at[ok]] = key[ok] % scale
         have[need] += np.minimum(counts, room)
         need = need[counts < room]
     return found
