@@ -57,8 +57,9 @@ def resolve_moves(
     cells = height * width
     dest = intended_cells(pos, actions, passable)
     offset = (np.arange(n_batch) * cells)[:, None]  # arenas side by side, cells numbered flat
-    cur = (pos @ np.array([width, 1]) + offset)[present]
-    dst = (dest @ np.array([width, 1]) + offset)[present]
+    strides = np.array([width, 1])
+    cur = (pos @ strides + offset)[present]
+    dst = (dest @ strides + offset)[present]
     if cur.size == 0:
         return pos.copy()
     occupant = np.full(n_batch * cells, -1, dtype=np.int64)
