@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from udan.envs import grouping
 from udan.envs.grouping import (
@@ -55,6 +57,24 @@ def test_rounds_are_disjoint_and_keep_each_agents_group_order():
                 assert seen_round.get(m, -1) < r
                 seen_round[m] = r
     assert [i.tolist() for i in rounds] == [[0, 2], [1], [3], [4]]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(2, 12), st.integers(2, 4), st.integers(0, 12), st.integers(0, 2**32 - 1))
+def test_each_group_is_one_round_after_the_earlier_groups_it_shares_an_agent_with(
+    agents, size, count, seed
+):
+    rng = np.random.default_rng(seed)
+    size = min(size, agents)
+    groups = np.array([rng.choice(agents, size, replace=False) for _ in range(count)])
+    groups = groups.reshape(count, size)
+    rounds = group_rounds(groups)
+    round_of = {int(g): r for r, idx in enumerate(rounds) for g in idx}
+    assert sorted(round_of) == list(range(count))
+    assert all(list(idx) == sorted(idx) for idx in rounds)  # priority order within a round
+    for g in range(count):
+        shared = [h for h in range(g) if set(groups[h]) & set(groups[g])]
+        assert round_of[g] == max((round_of[h] for h in shared), default=-1) + 1
 
 
 def test_hypothetical_groups_and_the_communication_matrix():

@@ -25,6 +25,11 @@ def test_edges_and_obstacles_block():
     assert step([[0, 0], [2, 2], [4, 4]], [UP, RIGHT, DOWN], grid) == [[0, 0], [2, 2], [4, 4]]
 
 
+def test_a_move_off_a_side_does_not_wrap_to_the_next_row():
+    # cells are numbered flat: (2, -1) would be (1, 4) and (1, 5) would be (2, 0)
+    assert step([[2, 0], [1, 4]], [LEFT, RIGHT]) == [[2, 0], [1, 4]]
+
+
 def test_two_agents_claiming_one_cell_both_wait():
     assert step([[2, 1], [2, 3]], [RIGHT, LEFT]) == [[2, 1], [2, 3]]
 

@@ -187,7 +187,11 @@ def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
     A group goes to the first round after the last round that holds any of its members, so an
     agent's groups are processed in priority order and each round can be one batched call.
     """
-    if len(groups) >= VECTOR_ROUNDS_FROM:
+    n_groups, size = groups.shape
+    if n_groups and 2 * size > int(groups.max()) + 1:
+        # fewer than 2 * size agents: any two groups share one, so each group is its own round
+        return list(np.arange(n_groups)[:, None])
+    if n_groups >= VECTOR_ROUNDS_FROM:
         return _rounds_by_relaxation(groups)
     last_round: dict[int, int] = {}
     rounds: list[list[int]] = []
