@@ -2,9 +2,11 @@
 
 The edge's own :class:`edge.decide.DecisionStep` with the bundled find_water policy, fed the cells
 an arena episode would show the camera, and the world stepped with the commands it returns (so
-the groups, joins and recurrent state evolve as on cars). Two sizes: the 9x9 arena with 5 cars,
-and 1,000 simulated agents on a 100x100 surround arena (the same network; the observation only
-normalises row and column by the larger grid). One onnxruntime thread. Prints one JSON object.
+the groups, joins and recurrent state evolve as on cars); also split into the steps that form
+groups (two graph calls, every ``group_interval`` steps) and those that keep them. Two sizes: the
+9x9 arena with 5 cars, and 1,000 simulated agents on a 100x100 surround arena (the same network;
+the observation only normalises row and column by the larger grid). One onnxruntime thread.
+Prints one JSON object.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
     world = ArenaBatch(config, 1, seed=seed)
     decide = DecisionStep(OnnxPolicy(MODEL), config.task, config.spec)
     total: list[int] = []
+    by_kind: dict[str, list[int]] = {"forming_groups": [], "keeping_groups": []}
     spans: dict[str, list[int]] = {"masking": [], "inference": [], "safety": []}
     fresh = True
     for i in range(steps + 5):
@@ -62,6 +65,7 @@ def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
         elapsed = time.perf_counter_ns() - t0
         if i >= 5:  # warm-up
             total.append(elapsed)
+            by_kind["forming_groups" if decision.formed else "keeping_groups"].append(elapsed)
             for name, value in decision.spans_ns.items():
                 spans[name].append(value)
         commands = np.full(world.slots, 4)
@@ -76,6 +80,7 @@ def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
         "task": config.task,
         "steps": steps,
         "decision_ms": _percentiles(total),
+        "decision_ms_by_step": {kind: _percentiles(v) for kind, v in by_kind.items() if v},
         "spans_ms": {name: _percentiles(v) for name, v in spans.items()},
         "target_p99_ms": TARGETS_P99_MS[agents],
         "met": p99 <= TARGETS_P99_MS[agents],

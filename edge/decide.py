@@ -52,6 +52,7 @@ class Decision:
     blocked: int
     stopped: int
     spans_ns: dict[str, int]
+    formed: bool = False  # the policy formed groups this step (its slowest kind of step)
 
 
 class DecisionStep:
@@ -147,6 +148,7 @@ class DecisionStep:
             blocked=int(filtered.blocked.sum()),
             stopped=int(filtered.stopped.sum()),
             spans_ns={"masking": t1 - t0, "inference": t2 - t1, "safety": t3 - t2},
+            formed=self.policy.formed,
         )
 
     def settle(

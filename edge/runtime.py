@@ -333,6 +333,7 @@ class Runtime:
                 "blocked": decision.blocked,
                 "stopped": decision.stopped,
                 "spans_ns": decision.spans_ns,
+                "formed": decision.formed,
                 "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
                 "commands": {str(c): a for c, a in commands.items()},
             }

@@ -209,6 +209,7 @@ class OnnxPolicy:
         self.t = 0
         self.reform = False
         self.q: np.ndarray | None = None
+        self.formed = False  # whether the last step formed groups (two graph calls)
 
     @property
     def h(self) -> np.ndarray:
@@ -231,10 +232,12 @@ class OnnxPolicy:
             self._resize(n)
         h, c = self._steps.state
         forget(h, c, fresh)
+        self.formed = False
         if self.graph.communicates:
             stale = len(self.groups) > 0 and not present[self.groups].all()
             if self.reform or self.t % self.interval == 0 or stale:
                 self.reform = False
+                self.formed = True
                 table = neighbour_table(pos, present, self.neighbours)
                 logits = self._steps.score(obs, table)
                 prob = 1.0 / (1.0 + np.exp(-logits))

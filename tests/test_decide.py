@@ -135,6 +135,7 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step) -> None:
         cells = {car: tuple(edge_world.pos[0, slot]) for car, slot in slots.items()}
         decision = step.decide(slots, set(slots) if t == 0 else set(), cells, static)
         assert decision.actions.tolist() == ref_actions[list(slots.values())].tolist()
+        assert decision.formed == reference.formed == (t % reference.interval == 0)
         sim.step(ref_actions[None])
         commands = np.full(edge_world.slots, WAIT)
         commands[list(slots.values())] = decision.commands

@@ -292,6 +292,29 @@ def test_a_reset_forgets_everything_and_keeps_the_bindings(udan_policy):
     assert np.array_equal(used.q, new.q) and np.array_equal(used.h, new.h)
 
 
+def test_the_policy_says_which_steps_formed_groups(udan_policy):
+    """Every ``interval`` steps, and at once when a grouped agent left."""
+    policy = OnnxPolicy(udan_policy)
+    policy.threshold = 0.0  # every agent leads a group
+    n, interval = 5, policy.interval
+    policy.reset(n)
+    rng = np.random.default_rng(4)
+    obs = rng.random((n, int(policy.graph.metadata["obs_dim"])), dtype=np.float32)
+    pos, present, fresh = (
+        np.array([[0, 0], [0, 1], [1, 0], [1, 1], [2, 2]]),
+        np.ones(n, bool),
+        np.zeros(n, bool),
+    )
+    formed = []
+    for _ in range(2 * interval):
+        policy.act(obs, present, pos, fresh)
+        formed.append(policy.formed)
+    assert formed == [t % interval == 0 for t in range(2 * interval)]
+    present[policy.groups[0, 0]] = False
+    policy.act(obs * present[:, None], present, pos, fresh)
+    assert policy.formed
+
+
 def test_export_writes_beside_the_checkpoint_and_verify_passes(checkpoints, capsys):
     ckpt = checkpoints["vdn"]
     assert main([str(ckpt), "--sizes", "1,3"]) == 0
