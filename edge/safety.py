@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from udan.envs.rules import FREE, WAIT, resolve_moves
+from udan.envs.rules import FREE, WAIT, in_bounds, resolve_moves
 
 STOP = 5  # edge.protocol.Action.STOP: halt the motors
 
@@ -53,7 +53,7 @@ def filter_moves(
         return Filtered(np.where(stopped, STOP, moving), np.zeros(len(pos), bool), stopped)
     passable = layout == FREE
     if others is not None and len(others):
-        others = others[(others >= 0).all(1) & (others < layout.shape).all(1)]
+        others = others[in_bounds(others, *layout.shape)]
         passable[others[:, 0], others[:, 1]] = False
     dest = resolve_moves(pos[None], moving[None], passable[None], np.ones((1, len(pos)), bool))[0]
     blocked = (moving != WAIT) & (dest == pos).all(axis=1)  # a move that did not happen

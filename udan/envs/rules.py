@@ -22,8 +22,11 @@ FREE, WALL, OBSTACLE, WATER = 0, 1, 2, 3
 
 
 def in_bounds(pos: np.ndarray, height: int, width: int) -> np.ndarray:
-    """True where ``pos[..., :]`` lies inside a ``height`` x ``width`` grid."""
-    return (pos[..., 0] >= 0) & (pos[..., 0] < height) & (pos[..., 1] >= 0) & (pos[..., 1] < width)
+    """True where ``pos[..., :]`` (integer rows and columns) lies inside a ``height`` x
+    ``width`` grid. A negative row or column read as unsigned is a huge number, so one
+    comparison checks both bounds."""
+    unsigned = np.ascontiguousarray(pos, dtype=np.int64).view(np.uint64)
+    return (unsigned < np.array([height, width], np.uint64)).all(axis=-1)
 
 
 def resolve_moves(
@@ -48,9 +51,7 @@ def resolve_moves(
     base = np.arange(0, n_batch * height * width, height * width)[:, None]
     dest = pos + ACTION_DELTAS[actions]
     cur = pos @ strides + base
-    # a negative row or column is a huge unsigned number: one comparison checks both bounds
-    inside = (dest.view(np.uint64) < np.array([height, width], np.uint64)).all(axis=-1)
-    dst = np.where(inside, dest @ strides + base, cur)
+    dst = np.where(in_bounds(dest, height, width), dest @ strides + base, cur)
     dst = np.where(passable.reshape(-1)[dst] & present, dst, cur)
     cur, dst = cur[present], dst[present]
     if cur.size == 0:
