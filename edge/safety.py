@@ -44,19 +44,20 @@ def filter_moves(
     -1: no expectation); ``others`` (M, 2), cells held by things the edge does not drive."""
     pos = np.asarray(pos, dtype=np.int64).reshape(-1, 2)
     actions = np.asarray(actions, dtype=np.int64).reshape(-1)
-    stopped = np.zeros(len(pos), dtype=bool)
-    if expected is not None:
-        known = expected[:, 0] >= 0
-        stopped = known & (expected != pos).any(axis=1)
+    if expected is None:
+        stopped = np.zeros(len(pos), dtype=bool)
+    else:  # a known expectation (no -1) that differs from where the car is
+        stopped = np.logical_or.reduce((expected != pos) & (expected >= 0), axis=1)
     moving = np.where(stopped, WAIT, actions)
-    if not (moving != WAIT).any():  # nothing moves: nothing can conflict
-        return Filtered(np.where(stopped, STOP, moving), np.zeros(len(pos), bool), stopped)
+    wants = moving != WAIT
+    if not wants.any():  # nothing moves: nothing can conflict
+        return Filtered(np.where(stopped, STOP, moving), wants, stopped)
     passable = layout == FREE
     if others is not None and len(others):
         others = others[in_bounds(others, *layout.shape)]
         passable[others[:, 0], others[:, 1]] = False
     dest = resolve_moves(pos[None], moving[None], passable[None], np.ones((1, len(pos)), bool))[0]
-    blocked = (moving != WAIT) & (dest == pos).all(axis=1)  # a move that did not happen
+    blocked = wants & np.logical_and.reduce(dest == pos, axis=1)  # a move that did not happen
     commands = np.where(blocked, WAIT, moving)
     commands[stopped] = STOP
     return Filtered(commands=commands, blocked=blocked, stopped=stopped)

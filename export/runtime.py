@@ -51,6 +51,11 @@ def round_inputs(groups: np.ndarray) -> dict[str, np.ndarray]:
             "round_groups": np.zeros(0, np.int64),
         }
     rounds = group_rounds(groups)
+    if len(rounds) == len(groups):  # one group a round: the groups' own (priority) order
+        return {
+            "members": np.ascontiguousarray(groups.T, np.int64),
+            "round_groups": np.ones(len(groups), np.int64),
+        }
     return {
         "members": np.ascontiguousarray(groups[np.concatenate(rounds)].T, np.int64),
         "round_groups": np.array([len(r) for r in rounds], np.int64),

@@ -191,6 +191,24 @@ def _bound_on_random_state(path, seed: int):
     return graph, rng, h, c, BoundGraph(graph, h.copy(), c.copy())
 
 
+@pytest.mark.parametrize(
+    ("groups", "members", "round_groups"),
+    [
+        # every two groups share an agent: one group a round, in priority order
+        ([[0, 1, 2], [2, 1, 0], [1, 0, 2]], [[0, 2, 1], [1, 1, 0], [2, 0, 2]], [1, 1, 1]),
+        # a chain of bridges: also one group a round
+        ([[0, 1], [1, 2], [2, 3]], [[0, 1, 2], [1, 2, 3]], [1, 1, 1]),
+        # the third group is disjoint from the first: it joins the first round
+        ([[0, 1], [1, 2], [3, 4]], [[0, 3, 1], [1, 4, 2]], [2, 1]),
+    ],
+)
+def test_round_inputs_list_the_groups_round_after_round(groups, members, round_groups):
+    got = round_inputs(np.array(groups))
+    assert got["members"].tolist() == members and got["members"].flags.c_contiguous
+    assert got["round_groups"].tolist() == round_groups
+    assert got["members"].dtype == got["round_groups"].dtype == np.int64
+
+
 def test_bound_calls_match_single_calls_step_after_step(udan_policy):
     """BoundGraph's two bindings take turns on the state: the same outputs as one call each,
     with groups of the same shapes copied into the bound buffers, and of other shapes bound."""

@@ -17,6 +17,8 @@ import numpy as np
 #: Fleets up to this size compare all pairs (cheaper than growing rings on a small arena).
 RING_SEARCH_FROM = 64
 
+_ABSENT = np.iinfo(np.int64).max  # the pair key of an absent agent: sorts last
+
 
 def nearest(pos: np.ndarray, present: np.ndarray, count: int) -> np.ndarray:
     """Each agent's ``count`` nearest present agents, itself first: (N, min(count, n)) slots.
@@ -45,7 +47,7 @@ def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.n
     orders by distance then slot, and ``key % N`` gives the slot back; an absent agent's row
     and column are all ``absent``, which sorts last."""
     m, n = present.shape
-    absent = np.iinfo(np.int64).max
+    absent = _ABSENT
     key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + _slot_keys(n)
     key = np.where(present[:, None, :] & present[:, :, None], key, absent)
     key.sort(axis=2)
