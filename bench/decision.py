@@ -6,6 +6,8 @@ the groups, joins and recurrent state evolve as on cars); also split into the st
 groups (two graph calls, every ``group_interval`` steps) and those that keep them. Two sizes: the
 9x9 arena with 5 cars, and 1,000 simulated agents on a 100x100 surround arena (the same network;
 the observation only normalises row and column by the larger grid). One onnxruntime thread.
+The steps come one right after another (warm caches); for 5 cars also after 50 ms of sleep
+each, as on cars, plain and with the runtime's rehearsal (``decision_ms_after_idle``).
 Prints one JSON object.
 """
 
@@ -29,6 +31,8 @@ from udan.envs.rules import OBSTACLE, WALL, WATER
 MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
 TARGETS_P99_MS = {5: 0.5, 1000: 10.0}
 KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
+IDLE_S = 0.05  # between decisions in the after-idle case
+ANALYSIS_S = 0.002  # from a rehearsal to the decision: the deciding frame's analysis
 
 
 def _percentiles(samples_ns: list[int]) -> dict[str, float]:
@@ -40,8 +44,14 @@ def _percentiles(samples_ns: list[int]) -> dict[str, float]:
     }
 
 
-def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
-    """Decide ``steps`` times, stepping the world with the commands; episodes restart at the end."""
+def run(
+    config: ArenaConfig, steps: int, seed: int = 0, idle_s: float = 0.0, rehearse: bool = False
+) -> dict:
+    """Decide ``steps`` times, stepping the world with the commands; episodes restart at the end.
+
+    ``idle_s``: sleep this long before each decision, as the edge waits ~200 ms for the cars'
+    moves (the caches go cold); ``rehearse``: then rehearse the last step and wait 2 ms, as the
+    runtime does while the deciding frame is analysed."""
     world = ArenaBatch(config, 1, seed=seed)
     decide = DecisionStep(OnnxPolicy(MODEL), config.task, config.spec)
     total: list[int] = []
@@ -60,6 +70,11 @@ def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
             static["target"] = frozenset({tuple(world.target[0].tolist())})
         slots = {int(s) + 1: int(s) for s in np.flatnonzero(world.present[0])}
         cells = {car: tuple(world.pos[0, s].tolist()) for car, s in slots.items()}
+        if idle_s:
+            time.sleep(idle_s)
+        if rehearse:
+            decide.rehearse()
+            time.sleep(ANALYSIS_S)
         t0 = time.perf_counter_ns()
         decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
         elapsed = time.perf_counter_ns() - t0
@@ -88,7 +103,13 @@ def run(config: ArenaConfig, steps: int, seed: int = 0) -> dict:
 
 
 def main() -> int:
-    small = run(ArenaConfig(task="find_water", agents=(5, 5), obstacles=(0, 9)), steps=2000)
+    five = ArenaConfig(task="find_water", agents=(5, 5), obstacles=(0, 9))
+    small = run(five, steps=2000)
+    small["decision_ms_after_idle"] = {
+        "idle_ms": IDLE_S * 1e3,
+        "plain": run(five, steps=200, idle_s=IDLE_S)["decision_ms"],
+        "rehearsed": run(five, steps=200, idle_s=IDLE_S, rehearse=True)["decision_ms"],
+    }
     large = run(
         ArenaConfig(
             task="surround", agents=(1000, 1000), obstacles=(200, 200), height=100, width=100

@@ -81,6 +81,7 @@ class DecisionStep:
         self.slot_return = np.zeros(slots, np.float64)
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
+        self._last: tuple | None = None  # the last step's inputs, for rehearse
 
     @property
     def returns(self) -> dict[int, float]:
@@ -129,16 +130,14 @@ class DecisionStep:
         if fresh:
             fresh_mask[[slots[c] for c in fresh if c in slots]] = True
         rewards = self._settle(cars, idx, fresh_mask, layout, pos, present, target)
-        codes = scene_codes(padded, pos, present, self.spec.view, target)
-        obs = observe(
-            self.spec, codes, pos, self.last_action[None], self.last_reward[None], present
-        )[0]
+        obs = self._observe(padded, pos, present, target)
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
         blockers = list(others or []) + sorted(static.get("target", ()))
         filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, moving)
         self.t += 1
+        self._last = slots, cells_of, static, blockers
         t3 = time.perf_counter_ns()
         return Decision(
             cars=tuple(cars.tolist()),
@@ -150,6 +149,23 @@ class DecisionStep:
             spans_ns={"masking": t1 - t0, "inference": t2 - t1, "safety": t3 - t2},
             formed=self.policy.formed,
         )
+
+    def rehearse(self) -> None:
+        """The last step's masking, policy work and safety filter once more, with nothing kept
+        (:meth:`export.runtime.OnnxPolicy.rehearse`). The runtime calls it while the frame it
+        will decide on is being analysed: a decision after ~50 ms of idling or of OpenCV work
+        takes ~3x as long as one right after another (the caches have gone cold; measured in
+        docs/timing.md), and this one warms them."""
+        if self._last is None:
+            return
+        slots, cells_of, static, blockers = self._last
+        layout, padded = self.layout(static)
+        _, idx, pos, present, target = self._scene(slots, cells_of, static)
+        task_rewards(self.task, layout[None], pos, present, target, np.array([self.t]))
+        obs = self._observe(padded, pos, present, target)
+        self.policy.rehearse(obs, present[0], pos[0])
+        others = np.array(blockers, np.int64).reshape(-1, 2)
+        filter_moves(layout, pos[0, idx], self.last_action[idx], others=others)
 
     def settle(
         self,
@@ -199,6 +215,14 @@ class DecisionStep:
             target_cells = sorted(static.get("target", ()))
             target = np.array([target_cells[0] if target_cells else (-1, -1)], np.int64)
         return cars, idx, pos, present, target
+
+    def _observe(
+        self, padded: np.ndarray, pos: np.ndarray, present: np.ndarray, target: np.ndarray | None
+    ) -> np.ndarray:
+        """Every slot's observation (S, D) of the scene, with its last action and reward."""
+        codes = scene_codes(padded, pos, present, self.spec.view, target)
+        last_action, last_reward = self.last_action[None], self.last_reward[None]
+        return observe(self.spec, codes, pos, last_action, last_reward, present)[0]
 
     def _settle(
         self,

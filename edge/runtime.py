@@ -190,7 +190,10 @@ class Runtime:
             if frame.t_capture_ns < self._not_before_ns:
                 continue
             loop = asyncio.get_running_loop()
-            scene = await loop.run_in_executor(self._vision_pool, self.vision.process, frame)
+            analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
+            if self._step_due():
+                self.decide.rehearse()  # this frame may be the deciding one: warm the caches
+            scene = await analysed
             now = time.monotonic_ns()
             self._fold(scene, frame, now)
             return scene
@@ -225,6 +228,10 @@ class Runtime:
             self.telemetry.event("fleet_leave", car=car)
             self.last_command.pop(car, None)
         self.telemetry.frame(frame.index, frame.t_capture_ns, now, len(seen), self.grabber.dropped)
+
+    def _step_due(self) -> bool:
+        """Every car of the fleet finished its move: the next frame taken decides."""
+        return bool(self.fleet.slot) and all(map(self.link.move_finished, self.fleet.slot))
 
     def _all_seen(self, scene: Scene) -> bool:
         """Every car of the fleet is on the grid in this frame."""

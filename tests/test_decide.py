@@ -107,11 +107,13 @@ def test_task_of() -> None:
         task_of("magent/pursuit")
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_decision_step_drives_like_the_simulation(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "rehearse"), [(0, False), (1, False), (2, False), (0, True)])
+def test_decision_step_drives_like_the_simulation(seed: int, rehearse: bool) -> None:
     """The edge's masking + policy + safety filter, fed the cells the camera would see, gives
     the same episode as the simulator stepping the same policy on the same layout; and again
-    for a second episode after a reset (nothing of the first is remembered)."""
+    for a second episode after a reset (nothing of the first is remembered). Rehearsing the
+    last step before each decision (as the runtime does while a frame is analysed) changes
+    nothing."""
     cfg = ArenaConfig(task="find_water", agents=(1, 5), obstacles=(0, 9))
     sim, edge_world = ArenaBatch(cfg, 1, seed=seed), ArenaBatch(cfg, 1, seed=seed)
     reference = OnnxPolicy(MODEL, expected=cfg.spec)
@@ -122,10 +124,10 @@ def test_decision_step_drives_like_the_simulation(seed: int) -> None:
         reference.reset(sim.slots)
         if episode:
             step.reset()
-        _drive_one_episode(cfg, sim, edge_world, reference, step)
+        _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse)
 
 
-def _drive_one_episode(cfg, sim, edge_world, reference, step) -> None:
+def _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse=False) -> None:
     fresh = np.ones(sim.slots, bool)
     static = _static_cells(edge_world.layout[0])
     slots = {int(s) + 1: int(s) for s in np.flatnonzero(edge_world.present[0])}
@@ -133,6 +135,9 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step) -> None:
         ref_actions = reference.act(sim.observe()[0], sim.present[0], sim.pos[0], fresh)
         fresh[:] = False
         cells = {car: tuple(edge_world.pos[0, slot]) for car, slot in slots.items()}
+        if rehearse:
+            step.rehearse()
+            step.rehearse()
         decision = step.decide(slots, set(slots) if t == 0 else set(), cells, static)
         assert decision.actions.tolist() == ref_actions[list(slots.values())].tolist()
         assert decision.formed == reference.formed == (t % reference.interval == 0)
