@@ -150,14 +150,14 @@ class DecisionStep:
             formed=self.policy.formed,
         )
 
-    def rehearse(self) -> None:
+    def rehearse(self) -> bool:
         """The last step's masking, policy work and safety filter once more, with nothing kept
-        (:meth:`export.runtime.OnnxPolicy.rehearse`). The runtime calls it while the frame it
-        will decide on is being analysed: a decision after ~50 ms of idling or of OpenCV work
-        takes ~3x as long as one right after another (the caches have gone cold; measured in
-        docs/timing.md), and this one warms them."""
+        (:meth:`export.runtime.OnnxPolicy.rehearse`); False when there is no last step (a new
+        episode). The runtime calls it while the frame it will decide on is being analysed: a
+        decision after ~50 ms of idling or of OpenCV work takes ~3x as long as one right after
+        another (the caches have gone cold; measured in docs/timing.md), and this warms them."""
         if self._last is None:
-            return
+            return False
         slots, cells_of, static, blockers = self._last
         layout, padded = self.layout(static)
         _, idx, pos, present, target = self._scene(slots, cells_of, static)
@@ -166,6 +166,7 @@ class DecisionStep:
         self.policy.rehearse(obs, present[0], pos[0])
         others = np.array(blockers, np.int64).reshape(-1, 2)
         filter_moves(layout, pos[0, idx], self.last_action[idx], others=others)
+        return True
 
     def settle(
         self,

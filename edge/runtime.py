@@ -138,6 +138,7 @@ class Runtime:
             1, thread_name_prefix="vision", initializer=yield_to_dispatch
         )
         self._not_before_ns = 0
+        self._rehearsed = False  # the last step was rehearsed since the last decision
         self._collections = 0
         self._longest_collection_ns = 0
         self._collected_ns = time.monotonic_ns()
@@ -191,8 +192,8 @@ class Runtime:
                 continue
             loop = asyncio.get_running_loop()
             analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
-            if self._step_due():
-                self.decide.rehearse()  # this frame may be the deciding one: warm the caches
+            if self._step_due() and self.decide.rehearse():
+                self._rehearsed = True  # this frame may be the deciding one: caches warmed
             scene = await analysed
             now = time.monotonic_ns()
             self._fold(scene, frame, now)
@@ -301,6 +302,7 @@ class Runtime:
         )
         self.fleet.fresh.clear()
         decided_ns = time.monotonic_ns()
+        rehearsed, self._rehearsed = self._rehearsed, False
         commands = {c: int(a) for c, a in zip(decision.cars, decision.commands, strict=True)}
         report = await self.link.dispatch(commands, decided_ns)
         self.last_command.update(commands)
@@ -341,6 +343,7 @@ class Runtime:
                 "stopped": decision.stopped,
                 "spans_ns": decision.spans_ns,
                 "formed": decision.formed,
+                "rehearsed": rehearsed,
                 "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
                 "commands": {str(c): a for c, a in commands.items()},
             }
@@ -358,6 +361,7 @@ class Runtime:
             if info.get("done"):
                 break
             self.decide.reset()
+            self._rehearsed = False
             self.fleet.reset()
             self.last_command.clear()
             self._not_before_ns = time.monotonic_ns()
