@@ -137,7 +137,7 @@ class DecisionStep:
         blockers = list(others or []) + sorted(static.get("target", ()))
         filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, moving)
         self.t += 1
-        self._last = slots, cells_of, static, blockers
+        self._last = dict(slots), dict(cells_of), dict(static), blockers
         t3 = time.perf_counter_ns()
         return Decision(
             cars=tuple(cars.tolist()),

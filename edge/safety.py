@@ -46,8 +46,8 @@ def filter_moves(
     actions = np.asarray(actions, dtype=np.int64).reshape(-1)
     if expected is None:
         stopped = np.zeros(len(pos), dtype=bool)
-    else:  # a known expectation (no -1) that differs from where the car is
-        stopped = np.logical_or.reduce((expected != pos) & (expected >= 0), axis=1)
+    else:  # a known expectation (row not -1) that differs from where the car is
+        stopped = np.logical_or.reduce((expected != pos) & (expected[:, :1] >= 0), axis=1)
     moving = np.where(stopped, WAIT, actions)
     wants = moving != WAIT
     if not wants.any():  # nothing moves: nothing can conflict

@@ -53,7 +53,7 @@ def round_inputs(groups: np.ndarray) -> dict[str, np.ndarray]:
     rounds = group_rounds(groups)
     if len(rounds) == len(groups):  # one group a round: the groups' own (priority) order
         return {
-            "members": np.ascontiguousarray(groups.T, np.int64),
+            "members": np.array(groups.T, np.int64, order="C"),  # a copy: bindings hold it
             "round_groups": np.ones(len(groups), np.int64),
         }
     return {

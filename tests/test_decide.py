@@ -158,6 +158,24 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse=False) ->
     assert step.returns == pytest.approx(sim_returns)
 
 
+def test_a_rehearsal_uses_the_last_step_as_it_was() -> None:
+    """Changing the dicts a decision was given, afterwards, changes nothing a rehearsal does."""
+    spec = ArenaConfig().spec
+    static = {"water": frozenset({(0, 4)})}
+    steps = [DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"]
+    decisions = []
+    for step in steps:
+        slots, cells = {7: 0, 9: 1}, {7: (6, 4), 9: (8, 8)}
+        step.decide(slots, {7, 9}, cells, static)
+        if step is steps[0]:
+            slots[3], cells[3] = 6, (0, 0)  # the caller reuses its dicts
+            assert step.rehearse()
+        decisions.append(step.decide({7: 0, 9: 1}, set(), {7: (5, 4), 9: (8, 7)}, static))
+    a, b = decisions
+    assert a.actions.tolist() == b.actions.tolist() and a.formed == b.formed
+    assert len(steps[0].owner) == len(steps[1].owner) == 2
+
+
 def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
     spec = ArenaConfig().spec
     step = DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec)

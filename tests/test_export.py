@@ -200,11 +200,14 @@ def _bound_on_random_state(path, seed: int):
         ([[0, 1], [1, 2], [2, 3]], [[0, 1, 2], [1, 2, 3]], [1, 1, 1]),
         # the third group is disjoint from the first: it joins the first round
         ([[0, 1], [1, 2], [3, 4]], [[0, 3, 1], [1, 4, 2]], [2, 1]),
+        ([[2, 0, 1]], [[2], [0], [1]], [1]),
     ],
 )
 def test_round_inputs_list_the_groups_round_after_round(groups, members, round_groups):
-    got = round_inputs(np.array(groups))
+    groups = np.array(groups)
+    got = round_inputs(groups)
     assert got["members"].tolist() == members and got["members"].flags.c_contiguous
+    assert not np.shares_memory(got["members"], groups)  # bound buffers get copied into
     assert got["round_groups"].tolist() == round_groups
     assert got["members"].dtype == got["round_groups"].dtype == np.int64
 
