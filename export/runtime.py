@@ -248,16 +248,13 @@ class OnnxPolicy:
             self._resize(n)
         h, c = self._steps.state
         forget(h, c, fresh)
-        self.formed = False
-        if self.graph.communicates:
-            stale = len(self.groups) > 0 and not present[self.groups].all()
-            if self.reform or self.t % self.interval == 0 or stale:
-                self.reform = False
-                self.formed = True
-                table = neighbour_table(pos, present, self.neighbours)
-                self.groups = self._form(pos, present, table, self._steps.score(obs, table))
-                self._steps.bind_groups(self.groups)
-                return self._done(self._steps.run_encoded())
+        self.formed = self._forms_groups(present)
+        if self.formed:
+            self.reform = False
+            table = neighbour_table(pos, present, self.neighbours)
+            self.groups = self._form(pos, present, table, self._steps.score(obs, table))
+            self._steps.bind_groups(self.groups)
+            return self._done(self._steps.run_encoded())
         return self._done(self._steps.run(obs))
 
     def rehearse(self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray) -> None:
@@ -268,11 +265,19 @@ class OnnxPolicy:
         The groups are formed (a step that forms them is the slowest) but not bound."""
         if len(obs) != len(self._steps.obs):
             return  # a fleet that changed size since: the next act binds anew anyway
-        if self.graph.communicates and (self.reform or self.t % self.interval == 0):
+        if self._forms_groups(present):
             table = neighbour_table(pos, present, self.neighbours)
             self._steps.rehearse(obs, table)
             round_inputs(self._form(pos, present, table, self._steps.leader_logits))
         self._steps.rehearse(obs)
+
+    def _forms_groups(self, present: np.ndarray) -> bool:
+        """A step with ``present`` forms groups: every ``interval`` steps, after a resize, and
+        at once when an agent of a group is gone."""
+        if not self.graph.communicates:
+            return False
+        stale = len(self.groups) > 0 and not present[self.groups].all()
+        return self.reform or self.t % self.interval == 0 or stale
 
     def _form(
         self, pos: np.ndarray, present: np.ndarray, table: np.ndarray, logits: np.ndarray

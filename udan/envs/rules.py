@@ -76,7 +76,7 @@ def resolve_moves(
     return pos + ACTION_DELTAS[done]
 
 
-@functools.cache
+@functools.lru_cache(maxsize=64)
 def _numbering(n_batch: int, height: int, width: int) -> tuple[np.ndarray, ...]:
     """For :func:`resolve_moves`: the (row, col) strides of the bordered cell numbers, each
     action's step in them, and each arena's offset plus the border (B, 1)."""
