@@ -47,7 +47,7 @@ def filter_moves(
     if expected is None:
         stopped = np.zeros(len(pos), dtype=bool)
     else:  # a known expectation (row not -1) that differs from where the car is
-        stopped = np.logical_or.reduce((expected != pos) & (expected[:, :1] >= 0), axis=1)
+        stopped = (expected != pos).any(axis=1) & (expected[:, 0] >= 0)
     moving = np.where(stopped, WAIT, actions)
     wants = moving != WAIT
     if not wants.any():  # nothing moves: nothing can conflict

@@ -276,8 +276,9 @@ class OnnxPolicy:
         at once when an agent of a group is gone."""
         if not self.graph.communicates:
             return False
-        stale = len(self.groups) > 0 and not present[self.groups].all()
-        return self.reform or self.t % self.interval == 0 or stale
+        if self.reform or self.t % self.interval == 0:
+            return True
+        return len(self.groups) > 0 and not present[self.groups].all()
 
     def _form(
         self, pos: np.ndarray, present: np.ndarray, table: np.ndarray, logits: np.ndarray

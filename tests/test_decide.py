@@ -191,3 +191,40 @@ def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
     assert set(step.returns) == {7, 8, 9}  # car 7 keeps what it earned
     d = step.decide({}, set(), {}, static)
     assert d.cars == () and d.commands.shape == (0,)
+
+
+def test_a_steady_fleet_decides_as_one_rebuilt_every_step() -> None:
+    """The fleet's slot arrays are kept while the cars keep their slots, and a steady fleet's
+    rewards skip the check for new owners: through joins, leaves, a car taking a freed slot, a
+    car coming back and fresh flags, every decision, return and owner equals those of a
+    decision step that rebuilds everything each step."""
+    spec = ArenaConfig().spec
+    static = {"water": frozenset({(0, 4), (0, 6)}), "obstacle": frozenset({(4, 4)})}
+    kept, rebuilt = (
+        DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"
+    )
+    rng = np.random.default_rng(5)
+    fleets = (
+        [{7: 0, 9: 1}] * 6
+        + [{7: 0}] * 3
+        + [{8: 0}] * 4
+        + [{8: 0, 9: 1}] * 4
+        + [{8: 0, 9: 1, 5: 2}] * 8
+    )
+    last: dict[int, int] = {}
+    for t, slots in enumerate(fleets):
+        fresh = {car for car in slots if car not in last} if t % 7 else set(slots)
+        cells = {car: (int(rng.integers(1, 9)), int(rng.integers(0, 9))) for car in slots}
+        cells = {car: (row, (col + 3 * i) % 9) for i, (car, (row, col)) in enumerate(cells.items())}
+        rebuilt._fleet_key = None
+        a = kept.decide(dict(slots), set(fresh), dict(cells), static)
+        b = rebuilt.decide(dict(slots), set(fresh), dict(cells), static)
+        assert (a.cars, a.actions.tolist(), a.commands.tolist(), a.rewards.tolist()) == (
+            b.cars,
+            b.actions.tolist(),
+            b.commands.tolist(),
+            b.rewards.tolist(),
+        )
+        assert kept.owner.tolist() == rebuilt.owner.tolist()
+        last = slots
+    assert kept.returns == rebuilt.returns

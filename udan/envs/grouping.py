@@ -45,15 +45,17 @@ def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.n
 
     A pair's key is ``distance * N + slot`` (itself: ``slot - N``, first), so sorting the keys
     orders by distance then slot, and ``key % N`` gives the slot back; an absent agent's row
-    and column are all ``absent``, which sorts last."""
+    and column are all ``absent``, which sorts last (with every agent present, as on a steady
+    fleet of cars, there is nothing to mask)."""
     m, n = present.shape
-    absent = _ABSENT
+    everyone = present.all()
     key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + _slot_keys(n)
-    key = np.where(present[:, None, :] & present[:, :, None], key, absent)
+    if not everyone:
+        key = np.where(present[:, None, :] & present[:, :, None], key, _ABSENT)
     key.sort(axis=2)
     out = np.full((m, n, count), -1, dtype=np.int64)
     near = key[:, :, :count]
-    out[:, :, : near.shape[2]] = np.where(near != absent, near % n, -1)
+    out[:, :, : near.shape[2]] = near % n if everyone else np.where(near != _ABSENT, near % n, -1)
     return out
 
 
