@@ -83,6 +83,8 @@ class DecisionStep:
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
         self._last: tuple | None = None  # the last step's inputs, for rehearse
         self._fleet_key: dict[int, int] | None = None  # the slots _fleet_arrays are for
+        self._fleet_arrays: tuple[np.ndarray, ...] | None = None
+        self._owned_key: dict[int, int] | None = None  # the slots last settled: cars own them
 
     @property
     def returns(self) -> dict[int, float]:
@@ -126,7 +128,7 @@ class DecisionStep:
         if not slots:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
-        steady = not fresh and slots == self._fleet_key  # the same cars in the same slots
+        steady = not fresh and slots == self._owned_key  # every car owns its slot already
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
         fresh_mask = np.zeros(len(self.owner), bool)
         if fresh:
@@ -207,8 +209,8 @@ class DecisionStep:
         return cars, idx, pos, present, target
 
     def _fleet(self, slots: Mapping[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Car ids in slot order, their slots, and presence (1, S) (read-only): kept while the
-        fleet keeps its slots, which is most steps (building them is ~8 numpy calls)."""
+        """Car ids in slot order, their slots, and presence (1, S), all read-only: kept while
+        the fleet keeps its slots, which is most steps (building them is ~8 numpy calls)."""
         if slots == self._fleet_key:
             return self._fleet_arrays
         n = len(slots)
@@ -226,7 +228,8 @@ class DecisionStep:
             self.slot_return = np.concatenate([self.slot_return, np.zeros(grow)])
         present = np.zeros((1, len(self.owner)), bool)
         present[0, idx] = True
-        present.flags.writeable = False
+        for array in (cars, idx, present):
+            array.flags.writeable = False
         self._fleet_key, self._fleet_arrays = dict(slots), (cars, idx, present)
         return self._fleet_arrays
 
@@ -251,8 +254,8 @@ class DecisionStep:
     ) -> np.ndarray:
         """Each car's reward for the step that ended (the arena's own reward code), added to its
         return; a car new to its slot, or ``fresh`` (per slot), starts with no last action, no
-        reward, no return. ``steady``: the slots are those of the last step and no car is
-        fresh, so every car already owns its slot."""
+        reward, no return. ``steady``: the slots are those last settled and no car is fresh,
+        so every car already owns its slot."""
         arrived = False
         if not steady:
             new = (self.owner[idx] != cars) | fresh[idx]
@@ -267,6 +270,7 @@ class DecisionStep:
             self.last_reward[renew] = 0.0
             self.expected[renew] = -1
             self.slot_return[renew] = 0.0
+        self._owned_key = self._fleet_key  # the slots _scene built cars and idx from
         rewards = np.zeros(len(cars), np.float32)
         if self.t > 0:
             step = np.array([self.t])

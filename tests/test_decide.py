@@ -196,27 +196,34 @@ def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
 def test_a_steady_fleet_decides_as_one_rebuilt_every_step() -> None:
     """The fleet's slot arrays are kept while the cars keep their slots, and a steady fleet's
     rewards skip the check for new owners: through joins, leaves, a car taking a freed slot, a
-    car coming back and fresh flags, every decision, return and owner equals those of a
-    decision step that rebuilds everything each step."""
+    car coming back, fresh flags, rehearsals and the settling of another fleet in between,
+    every decision, return and owner equals those of a decision step that rebuilds
+    everything each step."""
     spec = ArenaConfig().spec
     static = {"water": frozenset({(0, 4), (0, 6)}), "obstacle": frozenset({(4, 4)})}
     kept, rebuilt = (
         DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"
     )
+    three = {8: 0, 9: 1, 5: 2}
+    script = [("decide", {7: 0, 9: 1})] * 6 + [("decide", {7: 0})] * 3
+    script += [("decide", {8: 0})] * 4 + [("decide", {8: 0, 9: 1})] * 4 + [("decide", three)] * 6
+    script += [("settle", {8: 0, 6: 1, 5: 2}), ("rehearse", None)] + [("decide", three)] * 3
     rng = np.random.default_rng(5)
-    fleets = (
-        [{7: 0, 9: 1}] * 6
-        + [{7: 0}] * 3
-        + [{8: 0}] * 4
-        + [{8: 0, 9: 1}] * 4
-        + [{8: 0, 9: 1, 5: 2}] * 8
-    )
     last: dict[int, int] = {}
-    for t, slots in enumerate(fleets):
+    for t, (what, slots) in enumerate(script):
+        if what == "rehearse":
+            assert kept.rehearse() and rebuilt.rehearse()
+            continue
+        cells = {
+            car: (int(rng.integers(1, 9)), (int(rng.integers(0, 9)) + 3 * i) % 9)
+            for i, car in enumerate(slots)
+        }
+        if what == "settle":
+            a = kept.settle(dict(slots), dict(cells), static)
+            assert a.tolist() == rebuilt.settle(dict(slots), dict(cells), static).tolist()
+            continue
         fresh = {car for car in slots if car not in last} if t % 7 else set(slots)
-        cells = {car: (int(rng.integers(1, 9)), int(rng.integers(0, 9))) for car in slots}
-        cells = {car: (row, (col + 3 * i) % 9) for i, (car, (row, col)) in enumerate(cells.items())}
-        rebuilt._fleet_key = None
+        rebuilt._fleet_key = rebuilt._owned_key = None
         a = kept.decide(dict(slots), set(fresh), dict(cells), static)
         b = rebuilt.decide(dict(slots), set(fresh), dict(cells), static)
         assert (a.cars, a.actions.tolist(), a.commands.tolist(), a.rewards.tolist()) == (

@@ -45,8 +45,8 @@ def _nearest_all_pairs(pos: np.ndarray, present: np.ndarray, count: int) -> np.n
 
     A pair's key is ``distance * N + slot`` (itself: ``slot - N``, first), so sorting the keys
     orders by distance then slot, and ``key % N`` gives the slot back; an absent agent's row
-    and column are all ``absent``, which sorts last (with every agent present, as on a steady
-    fleet of cars, there is nothing to mask)."""
+    and column are all ``absent``, which sorts last (with every agent present there is nothing
+    to mask)."""
     m, n = present.shape
     everyone = present.all()
     key = np.abs(pos[:, :, None, :] - pos[:, None, :, :]).sum(-1) * n + _slot_keys(n)
