@@ -254,8 +254,9 @@ class DecisionStep:
     ) -> np.ndarray:
         """Each car's reward for the step that ended (the arena's own reward code), added to its
         return; a car new to its slot, or ``fresh`` (per slot), starts with no last action, no
-        reward, no return. ``steady``: the slots are those last settled and no car is fresh,
-        so every car already owns its slot."""
+        reward, no return, and its slot is marked in ``fresh`` (in place) so the policy starts
+        its memory empty too, flagged by the caller or not. ``steady``: the slots are those
+        last settled and no car is fresh, so every car already owns its slot."""
         arrived = False
         if not steady:
             new = (self.owner[idx] != cars) | fresh[idx]
@@ -266,6 +267,7 @@ class DecisionStep:
                 self._banked[old] = self._banked.get(old, 0.0) + float(self.slot_return[slot])
             self.owner[idx] = cars
             renew = idx[new]
+            fresh[renew] = True
             self.last_action[renew] = -1
             self.last_reward[renew] = 0.0
             self.expected[renew] = -1

@@ -4,9 +4,11 @@ A car is in the fleet when it has joined over the protocol (and its clock is syn
 the camera sees its marker. It leaves when its marker has not been seen for ``lost_s`` or when
 the link drops it (LEAVE, reboot, silence). The policy keeps recurrent state per slot; a car keeps
 its slot for as long as it stays, a new car takes a free slot with fresh memory, and a slot freed
-by a leaving car is reused only at a later step (the policy sees it absent for one step first,
-which also re-forms any group the leaver was in). The number of cars changes from one step to
-the next without a pause.
+by a leaving car is reused only after the next step (the policy sees it absent for one step
+first, which also re-forms any group the leaver was in). The camera updates the fleet every
+frame and the runtime decides every few frames, so what happened between two steps (cars that
+joined, slots that were freed) is kept until :meth:`Fleet.stepped`. The number of cars changes
+from one step to the next without a pause.
 """
 
 from __future__ import annotations
@@ -34,6 +36,12 @@ class Fleet:
         self._last_seen: dict[int, int] = {}
         self._freed: set[int] = set()
 
+    def stepped(self) -> None:
+        """A step was decided with the cars in ``fresh``: they are no longer new, and the slots
+        freed before it (the step saw them absent) can be taken again."""
+        self.fresh.clear()
+        self._freed.clear()
+
     @property
     def size(self) -> int:
         """Slots the policy needs: one past the highest slot in use (or being freed)."""
@@ -48,12 +56,11 @@ class Fleet:
                 self._last_seen[car] = now_ns
         ready_set = set(ready)
         change = Change()
-        self._freed.clear()
-        self.fresh.clear()
         for car in sorted(self.slot):
             lost = now_ns - self._last_seen.get(car, now_ns) > self.lost_ns
             if lost or car not in ready_set:
                 self._freed.add(self.slot.pop(car))
+                self.fresh.discard(car)  # joined and gone again before a step saw it
                 change.left.append(car)
         taken = set(self.slot.values()) | self._freed
         for car in sorted(ready_set - self.slot.keys()):

@@ -307,10 +307,9 @@ class Runtime:
         """One decision and its dispatch, with the step's telemetry."""
         slots = dict(self.fleet.slot)
         cells = {c: self.last_cell[c] for c in slots}
-        decision = self.decide.decide(
-            slots, set(self.fleet.fresh), cells, scene.cells, self._others(scene), moving
-        )
-        self.fleet.fresh.clear()
+        fresh = set(self.fleet.fresh)
+        decision = self.decide.decide(slots, fresh, cells, scene.cells, self._others(scene), moving)
+        self.fleet.stepped()
         decided_ns = time.monotonic_ns()
         rehearsed, self._rehearsed = self._rehearsed, False
         self._last_decision_ns = decided_ns - state_ns
@@ -332,6 +331,7 @@ class Runtime:
                 "t_ns": decided_ns,
                 "step": self.decide.t,
                 "cars": len(slots),
+                "fresh": sorted(fresh),  # new to the policy: their memory starts empty
                 "frame": scene.frame_index,
                 "state_to_commands_ns": decided_ns - state_ns,
                 "commands_to_received_ns": max(received) - decided_ns

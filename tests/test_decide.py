@@ -78,18 +78,30 @@ def test_fleet_needs_join_and_sighting_and_keeps_slots() -> None:
     assert change.joined == [1] and fleet.slot == {1: 0} and fleet.fresh == {1}
     change = fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=10_000_000)
     assert change.joined == [2, 3] and fleet.slot == {1: 0, 2: 1, 3: 2}
-    assert fleet.fresh == {2, 3}
-    # car 2 stops being seen: it leaves after lost_s, its slot is not reused in that step
+    assert fleet.fresh == {1, 2, 3}  # no step yet: car 1 is still new to the policy
+    fleet.stepped()
+    assert fleet.fresh == set()
+    # car 2 stops being seen: it leaves after lost_s, its slot is not reused before a step
     fleet.update({11, 13}, ready={1, 2, 3}, now_ns=50_000_000)
     assert 2 in fleet.slot
     change = fleet.update({11, 13}, ready={1, 2, 3}, now_ns=200_000_000)
     assert change.left == [2] and fleet.slot == {1: 0, 3: 2} and fleet.size == 3
-    # it comes back: a fresh car, in the freed slot one step later
+    # it comes back on the next frame: a fresh car, in a new slot (the step has not seen its
+    # old one absent yet); a frame later it is still fresh
     fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=210_000_000)
-    assert fleet.slot[2] == 1 and fleet.fresh == {2}
-    # the link drops car 1 (silence, LEAVE): it leaves at once
-    change = fleet.update({11, 12, 13}, ready={2, 3}, now_ns=220_000_000)
+    assert fleet.slot[2] == 3 and fleet.fresh == {2}
+    fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=220_000_000)
+    assert fleet.fresh == {2}
+    fleet.stepped()
+    # the link drops car 1 (silence, LEAVE): it leaves at once; after a step its slot is free
+    change = fleet.update({11, 12, 13}, ready={2, 3}, now_ns=230_000_000)
     assert change.left == [1]
+    fleet.stepped()
+    change = fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=240_000_000)
+    assert change.joined == [1] and fleet.slot[1] == 0 and fleet.fresh == {1}
+    # a car that joins and leaves again between two steps is not new to the next one
+    change = fleet.update({11, 12, 13}, ready={2, 3}, now_ns=250_000_000)
+    assert change.left == [1] and fleet.fresh == set()
 
 
 # --- decision step == simulation ---------------------------------------------------------------
@@ -235,3 +247,22 @@ def test_a_steady_fleet_decides_as_one_rebuilt_every_step() -> None:
         assert kept.owner.tolist() == rebuilt.owner.tolist()
         last = slots
     assert kept.returns == rebuilt.returns
+
+
+def test_a_car_taking_a_slot_starts_with_empty_memory_flagged_fresh_or_not() -> None:
+    """A car in a slot another car held gets that car's nothing: its memory starts empty and
+    it has no last action, whether or not the caller flagged it fresh."""
+    spec = ArenaConfig().spec
+    static = {"water": frozenset({(0, 4), (0, 6)})}
+    flagged, unflagged = (
+        DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"
+    )
+    for step in (flagged, unflagged):
+        for t, cell in enumerate([(8, 1), (7, 1), (6, 1), (5, 1), (4, 1), (3, 1)]):
+            step.decide({7: 0, 9: 1}, {7, 9} if t == 0 else set(), {7: cell, 9: (8, 8)}, static)
+        assert np.abs(step.policy.h[0, 0]).max() > 0  # car 7 remembers something
+    a = flagged.decide({8: 0, 9: 1}, {8}, {8: (6, 6), 9: (8, 8)}, static)
+    b = unflagged.decide({8: 0, 9: 1}, set(), {8: (6, 6), 9: (8, 8)}, static)
+    assert a.actions.tolist() == b.actions.tolist() and a.stopped == b.stopped == 0
+    assert np.array_equal(flagged.policy.h, unflagged.policy.h)
+    assert np.array_equal(flagged.policy.q, unflagged.policy.q)

@@ -142,6 +142,9 @@ def test_reboot_stall_and_fleet_changes_mid_run(tmp_path: Path) -> None:
     assert alone.size > 3 and np.diff(alone).max() <= 2 * period + 0.1e9
     joined = [r for r in first if r["t_ns"] > events["join"]["t_ns"] and "3" in r["outcomes"]]
     assert joined and joined[-1]["outcomes"]["3"] == "on_time"
+    # new to the policy (its memory starts empty) in the first step that drives it, though it
+    # joined on one of the frames between two steps, and only then
+    assert joined[0]["fresh"] == [3] and not any(3 in r["fresh"] for r in joined[1:])
     assert s["edge"]["counts"]["camera_stall"] >= 1
 
 
