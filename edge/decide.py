@@ -154,15 +154,25 @@ class DecisionStep:
             formed=self.policy.formed,
         )
 
-    def rehearse(self) -> bool:
+    def rehearse(
+        self,
+        slots: Mapping[int, int] | None = None,
+        cells_of: Mapping[int, tuple[int, int]] | None = None,
+        static: Mapping[str, frozenset[tuple[int, int]]] | None = None,
+    ) -> bool:
         """The last step's masking, policy work and safety filter once more, with nothing kept
         (:meth:`export.runtime.OnnxPolicy.rehearse`); False when there is no last step (a new
-        episode). The runtime calls it while the frame it will decide on is being analysed: a
-        decision after ~50 ms of idling or of OpenCV work takes ~3x as long as one right after
-        another (the caches have gone cold; measured in docs/timing.md), and this warms them."""
-        if self._last is None:
+        episode). Given ``slots``, ``cells_of`` and ``static``, those instead: the step a new
+        episode's fleet would make from where it stands. The runtime calls it while the frame
+        it will decide on is being analysed: a decision after ~50 ms of idling or of OpenCV
+        work takes ~3x as long as one right after another (the caches have gone cold; measured
+        in docs/timing.md), and this warms them."""
+        if slots is not None and cells_of is not None and static is not None:
+            blockers = sorted(static.get("target", ()))
+        elif self._last is not None:
+            slots, cells_of, static, blockers = self._last
+        else:
             return False
-        slots, cells_of, static, blockers = self._last
         layout, padded = self.layout(static)
         _, idx, pos, present, target = self._scene(slots, cells_of, static)
         task_rewards(self.task, layout[None], pos, present, target, np.array([self.t]))

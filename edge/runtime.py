@@ -136,6 +136,7 @@ class Runtime:
         self.world = world
         self.stop = asyncio.Event()
         self.last_cell: dict[int, tuple[int, int]] = {}
+        self._static: dict[str, frozenset[tuple[int, int]]] | None = None  # the last scene's
         self.last_command: dict[int, int] = {}
         self._car_of_marker = {m: c for c, m in fleet.markers.items()}
         self._vision_pool = ThreadPoolExecutor(
@@ -197,7 +198,7 @@ class Runtime:
                 continue
             loop = asyncio.get_running_loop()
             analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
-            if self._worth_rehearsing() and self.decide.rehearse():
+            if self._worth_rehearsing() and self._rehearse():
                 self._rehearsed = True  # this frame may be the deciding one: caches warmed
             scene = await analysed
             now = time.monotonic_ns()
@@ -222,6 +223,7 @@ class Runtime:
 
     def _fold(self, scene: Scene, frame: Frame, now: int) -> None:
         """A scene into the fleet and the last known cells; telemetry of the frame."""
+        self._static = scene.cells
         for marker, sighting in scene.cars.items():
             car = self._car_of_marker.get(marker)
             if car is not None and sighting.inside:
@@ -243,6 +245,18 @@ class Runtime:
             and bool(self.fleet.slot)
             and all(map(self.link.move_finished, self.fleet.slot))
         )
+
+    def _rehearse(self) -> bool:
+        """The last step once more; before an episode's first step, the step its fleet would
+        make from the cells and markers seen last (that first step is otherwise the coldest:
+        1.2 ms median in the full loop, against 0.6 ms for a rehearsed one)."""
+        if self.decide.rehearse():
+            return True
+        slots = dict(self.fleet.slot)
+        if self._static is None or not all(car in self.last_cell for car in slots):
+            return False
+        cells = {car: self.last_cell[car] for car in slots}
+        return self.decide.rehearse(slots, cells, self._static)
 
     def _all_seen(self, scene: Scene) -> bool:
         """Every car of the fleet is on the grid in this frame."""

@@ -170,6 +170,29 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse=False) ->
     assert step.returns == pytest.approx(sim_returns)
 
 
+def test_rehearsing_an_episodes_first_step_changes_nothing() -> None:
+    """A new episode has no last step; rehearsing the step its fleet would make from given
+    cells (the runtime does, while the first frame is analysed) keeps nothing either."""
+    spec = ArenaConfig().spec
+    static = {"water": frozenset({(0, 4)}), "obstacle": frozenset({(3, 3)})}
+    plain, rehearsed = (
+        DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"
+    )
+    for step in (plain, rehearsed):  # an episode on 2 slots, then a new one
+        step.decide({7: 0, 9: 1}, {7, 9}, {7: (6, 4), 9: (8, 8)}, static)
+        step.reset()
+    assert not rehearsed.rehearse()
+    assert rehearsed.rehearse({7: 0, 9: 1}, {7: (7, 2), 9: (5, 5)}, static)
+    for t, cells in enumerate([{7: (7, 2), 9: (5, 5)}, {7: (6, 2), 9: (4, 5)}]):
+        a, b = (
+            step.decide({7: 0, 9: 1}, {7, 9} if t == 0 else set(), cells, static)
+            for step in (plain, rehearsed)
+        )
+        assert a.actions.tolist() == b.actions.tolist() and a.formed == b.formed
+        assert np.array_equal(plain.policy.h, rehearsed.policy.h)
+        assert plain.policy.t == rehearsed.policy.t
+
+
 def test_a_rehearsal_uses_the_last_step_as_it_was() -> None:
     """Changing the dicts a decision was given, afterwards, changes nothing a rehearsal does."""
     spec = ArenaConfig().spec
