@@ -160,24 +160,30 @@ class DecisionStep:
         cells_of: Mapping[int, tuple[int, int]] | None = None,
         static: Mapping[str, frozenset[tuple[int, int]]] | None = None,
     ) -> bool:
-        """The last step's masking, policy work and safety filter once more, with nothing kept
-        (:meth:`export.runtime.OnnxPolicy.rehearse`); False when there is no last step (a new
-        episode). Given ``slots``, ``cells_of`` and ``static``, those instead: the step a new
-        episode's fleet would make from where it stands. The runtime calls it while the frame
-        it will decide on is being analysed: a decision after ~50 ms of idling or of OpenCV
-        work takes ~3x as long as one right after another (the caches have gone cold; measured
-        in docs/timing.md), and this warms them."""
+        """The last step's masking, policy work and safety filter once more, keeping nothing a
+        decision reads (:meth:`export.runtime.OnnxPolicy.rehearse`); given ``slots``,
+        ``cells_of`` and ``static``, those instead: the step a new episode's fleet would make
+        from where it stands. The runtime calls it while the frame it will decide on is being
+        analysed: a decision after ~50 ms of idling or of OpenCV work takes ~3x as long as one
+        right after another (the caches have gone cold; measured in docs/timing.md), and this
+        warms them. False, having done nothing, when there is nothing to rehearse: no last step
+        (a new episode) and none given, or a fleet in more slots than the step has (its
+        decision grows the per-slot state and binds the policy anew, which a rehearsal must
+        not do)."""
         if slots is not None and cells_of is not None and static is not None:
             blockers = sorted(static.get("target", ()))
         elif self._last is not None:
             slots, cells_of, static, blockers = self._last
         else:
             return False
+        if not slots or max(slots.values()) >= len(self.owner):
+            return False
         layout, padded = self.layout(static)
         _, idx, pos, present, target = self._scene(slots, cells_of, static)
         task_rewards(self.task, layout[None], pos, present, target, np.array([self.t]))
         obs = self._observe(padded, pos, present, target)
-        self.policy.rehearse(obs, present[0], pos[0])
+        if not self.policy.rehearse(obs, present[0], pos[0]):
+            return False
         others = np.array(blockers, np.int64).reshape(-1, 2)
         filter_moves(layout, pos[0, idx], self.last_action[idx], others=others)
         return True

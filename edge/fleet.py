@@ -35,16 +35,19 @@ class Fleet:
         self.fresh: set[int] = set()
         self._last_seen: dict[int, int] = {}
         self._freed: set[int] = set()
+        self._decided = False  # a step was decided since the last reset
 
     def stepped(self) -> None:
         """A step was decided with the cars in ``fresh``: they are no longer new, and the slots
         freed before it (the step saw them absent) can be taken again."""
         self.fresh.clear()
         self._freed.clear()
+        self._decided = True
 
     @property
     def size(self) -> int:
-        """Slots the policy needs: one past the highest slot in use (or being freed)."""
+        """One past the highest slot in use or held (freed, and not yet seen absent by a
+        step)."""
         used = list(self.slot.values()) + list(self._freed)
         return max(used) + 1 if used else 0
 
@@ -59,7 +62,9 @@ class Fleet:
         for car in sorted(self.slot):
             lost = now_ns - self._last_seen.get(car, now_ns) > self.lost_ns
             if lost or car not in ready_set:
-                self._freed.add(self.slot.pop(car))
+                slot = self.slot.pop(car)
+                if self._decided:  # before any step no policy memory is in the slot
+                    self._freed.add(slot)
                 self.fresh.discard(car)  # joined and gone again before a step saw it
                 change.left.append(car)
         taken = set(self.slot.values()) | self._freed
@@ -78,3 +83,4 @@ class Fleet:
         self.fresh.clear()
         self._freed.clear()
         self._last_seen.clear()
+        self._decided = False

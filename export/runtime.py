@@ -257,19 +257,22 @@ class OnnxPolicy:
             return self._done(self._steps.run_encoded())
         return self._done(self._steps.run(obs))
 
-    def rehearse(self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray) -> None:
+    def rehearse(self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray) -> bool:
         """Go through the work of :meth:`act` on ``obs`` (the last step's, say) and keep
         nothing: no state, groups or step count change. What it is for: a decision that comes
         after the process sat idle, or after a frame's analysis, runs from cold caches at ~3x
         its warm time (measured), so the edge rehearses while it waits for the deciding frame.
-        The groups are formed (a step that forms them is the slowest) but not bound."""
+        The groups are formed (a step that forms them is the slowest) but not bound. False,
+        doing nothing, for ``obs`` of another number of slots than the graph is bound to (the
+        next act binds anew anyway)."""
         if len(obs) != len(self._steps.obs):
-            return  # a fleet that changed size since: the next act binds anew anyway
+            return False
         if self._forms_groups(present):
             table = neighbour_table(pos, present, self.neighbours)
             self._steps.rehearse(obs, table)
             round_inputs(self._form(pos, present, table, self._steps.leader_logits))
         self._steps.rehearse(obs)
+        return True
 
     def _forms_groups(self, present: np.ndarray) -> bool:
         """A step with ``present`` forms groups: every ``interval`` steps, after a resize, and

@@ -76,6 +76,10 @@ def test_fleet_needs_join_and_sighting_and_keeps_slots() -> None:
     fleet = Fleet({1: 11, 2: 12, 3: 13}, lost_s=0.1)
     change = fleet.update({11, 12}, ready={1}, now_ns=0)
     assert change.joined == [1] and fleet.slot == {1: 0} and fleet.fresh == {1}
+    # before any step a car that drops out and back in takes its slot again (no memory in it)
+    assert fleet.update({11, 12}, ready=set(), now_ns=1_000_000).left == [1]
+    assert fleet.update({11, 12}, ready={1}, now_ns=2_000_000).joined == [1]
+    assert fleet.slot == {1: 0} and fleet.size == 1
     change = fleet.update({11, 12, 13}, ready={1, 2, 3}, now_ns=10_000_000)
     assert change.joined == [2, 3] and fleet.slot == {1: 0, 2: 1, 3: 2}
     assert fleet.fresh == {1, 2, 3}  # no step yet: car 1 is still new to the policy
@@ -182,6 +186,9 @@ def test_rehearsing_an_episodes_first_step_changes_nothing() -> None:
         step.decide({7: 0, 9: 1}, {7, 9}, {7: (6, 4), 9: (8, 8)}, static)
         step.reset()
     assert not rehearsed.rehearse()
+    # a fleet in more slots than the step has is not rehearsed: it would grow the step's state
+    assert not rehearsed.rehearse({7: 0, 9: 1, 5: 2}, {7: (7, 2), 9: (5, 5), 5: (6, 6)}, static)
+    assert len(rehearsed.owner) == 2 and not rehearsed.rehearse({}, {}, static)
     assert rehearsed.rehearse({7: 0, 9: 1}, {7: (7, 2), 9: (5, 5)}, static)
     for t, cells in enumerate([{7: (7, 2), 9: (5, 5)}, {7: (6, 2), 9: (4, 5)}]):
         a, b = (
