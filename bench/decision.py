@@ -72,8 +72,8 @@ def run(
         cells = {car: tuple(world.pos[0, s].tolist()) for car, s in slots.items()}
         if idle_s:
             time.sleep(idle_s)
-        if rehearse:
-            decide.rehearse()
+        if rehearse:  # as the runtime: the last step, or an episode's first from where it stands
+            decide.rehearse() or decide.rehearse(slots, cells, static)
             time.sleep(ANALYSIS_S)
         t0 = time.perf_counter_ns()
         decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
