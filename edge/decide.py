@@ -55,6 +55,14 @@ class Decision:
     formed: bool = False  # the policy formed groups this step (its slowest kind of step)
 
 
+def _blockers(
+    static: Mapping[str, frozenset[tuple[int, int]]], others: list[tuple[int, int]] | None = None
+) -> list[tuple[int, int]]:
+    """Cells the safety filter keeps the cars out of: things the edge does not drive
+    (``others``) and the surround target."""
+    return list(others or []) + sorted(static.get("target", ()))
+
+
 class DecisionStep:
     """The policy side of one arena: per-slot last action, last reward, where each car should
     be after its command, and its return this episode. State lives in arrays indexed by the
@@ -138,7 +146,7 @@ class DecisionStep:
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
-        blockers = list(others or []) + sorted(static.get("target", ()))
+        blockers = _blockers(static, others)
         filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, moving)
         self.t += 1
         self._last = dict(slots), dict(cells_of), dict(static), blockers
@@ -171,7 +179,7 @@ class DecisionStep:
         decision grows the per-slot state and binds the policy anew, which a rehearsal must
         not do)."""
         if slots is not None and cells_of is not None and static is not None:
-            blockers = sorted(static.get("target", ()))
+            blockers = _blockers(static)
         elif self._last is not None:
             slots, cells_of, static, blockers = self._last
         else:
