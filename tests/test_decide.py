@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from edge import safety
 from edge.decide import DecisionStep, TaskError, task_of
 from edge.fleet import Fleet
 from edge.safety import STOP, filter_moves
@@ -48,6 +49,27 @@ def test_filter_never_two_cars_in_a_cell_nor_swaps(seed: int, cars: int, obstacl
             assert i == j or not swapped
     assert (out.commands[out.blocked] == WAIT).all()
     assert (out.commands[~out.blocked] == actions[~out.blocked]).all()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.integers(0, 12))
+def test_filter_commands_a_few_cars_as_the_array_rules_do(seed: int, cars: int, held: int) -> None:
+    # the plain-Python filter for small fleets against the array one for large fleets, with
+    # cars seen off their cells and cells held by others (some off the arena)
+    rng = np.random.default_rng(seed)
+    layout = np.zeros((6, 6), np.uint8)
+    cells = rng.permutation(36)
+    layout.flat[cells[:4]] = OBSTACLE
+    cars = min(cars, 32)
+    start = cells[4 : 4 + cars]
+    pos = np.stack([start // 6, start % 6], axis=-1)
+    actions = rng.integers(0, 5, cars)
+    expected = np.where(rng.random((cars, 1)) < 0.8, pos, rng.integers(-1, 6, (cars, 2)))
+    others = rng.integers(-1, 7, (held, 2))
+    few = safety._filter_few(layout, pos, actions, expected, others)
+    many = safety._filter_many(layout, pos, actions, expected, others)
+    for name in ("commands", "blocked", "stopped"):
+        assert getattr(few, name).tolist() == getattr(many, name).tolist(), name
 
 
 def test_filter_stops_a_car_seen_off_its_cell_and_respects_other_things() -> None:

@@ -4,7 +4,16 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from udan.envs.rules import ACTION_DELTAS, DOWN, LEFT, RIGHT, UP, WAIT, resolve_moves
+from udan.envs.rules import (
+    ACTION_DELTAS,
+    DOWN,
+    LEFT,
+    RIGHT,
+    UP,
+    WAIT,
+    resolve_few,
+    resolve_moves,
+)
 
 
 def step(positions, actions, passable=None, size=5):
@@ -101,3 +110,25 @@ def test_never_two_agents_in_a_cell_nor_a_swap(size, n, seed):
         j = before.get(tuple(out[0, i].tolist()))
         if j is not None:
             assert out[0, j].tolist() != pos[0, i].tolist(), "swap"
+
+
+@settings(max_examples=500, deadline=None)
+@given(size=st.integers(2, 5), n=st.integers(1, 14), seed=st.integers(0, 2**32 - 1))
+def test_resolve_few_moves_agents_as_resolve_moves_does(size, n, seed):
+    # crowded arenas: chains, swaps, rotations and several claims on one cell are common
+    rng = np.random.default_rng(seed)
+    passable = rng.random((size, size)) > 0.15
+    free = np.flatnonzero(passable)
+    n = min(n, free.size)
+    if n == 0:
+        return
+    cells = rng.choice(free, size=n, replace=False)
+    pos = np.stack([cells // size, cells % size], -1)
+    act = rng.integers(0, 5, size=n)
+    want = pos + ACTION_DELTAS[act]
+    inside = ((want >= 0) & (want < size)).all(1)
+    ok = inside & passable[want[:, 0].clip(0, size - 1), want[:, 1].clip(0, size - 1)]
+    dst = np.where(ok[:, None], want, pos)
+    moved = resolve_few(list(map(tuple, pos.tolist())), list(map(tuple, dst.tolist())))
+    out = resolve_moves(pos[None], act[None], passable[None], np.ones((1, n), bool))[0]
+    assert moved == (out != pos).any(1).tolist()

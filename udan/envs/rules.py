@@ -1,7 +1,9 @@
 """What a move does: the grid world rules shared by training, the edge safety filter and HIL.
 
 Every function here is batched over arenas (axis 0) and agents (axis 1), numpy only, so the
-vectorised training core, the edge runtime (one arena) and the HIL world all run the same code.
+vectorised training core, the edge runtime (one arena) and the HIL world all run the same code;
+:func:`resolve_few` is the conflict rules once more in plain Python, for the edge's few cars
+(tests hold it to :func:`resolve_moves`' answers).
 
 Positions are ``(row, col)`` integer pairs; row 0 is the top of the camera image.
 """
@@ -74,6 +76,31 @@ def resolve_moves(
     done = np.full(present.shape, WAIT)
     done[present] = np.where(dst != cur, actions[present], WAIT)
     return pos + ACTION_DELTAS[done]
+
+
+def resolve_few(cur: list[tuple[int, int]], dst: list[tuple[int, int]]) -> list[bool]:
+    """Which of a few agents on the cells ``cur`` get to the cells ``dst`` they head for (a
+    passable cell next to theirs, or their own: a wait): :func:`resolve_moves`' conflict rules
+    and fixed point for one arena, in plain Python. The edge filters ~5 cars a step, where
+    resolve_moves' ~40 array operations cost ~40 µs and this a few."""
+    moved = [d != c for c, d in zip(cur, dst, strict=True)]
+    if True not in moved:
+        return moved
+    dst = list(dst)
+    occupant = {cell: i for i, cell in enumerate(cur)}
+    while True:
+        shared = len(set(dst)) < len(dst)  # some cell is claimed twice (rare: count then)
+        # blocked: a claimed cell held by several, or a swap with the cell's occupant (an agent
+        # is its own occupant when its cell is empty: never a swap, as it moves)
+        blocked = [
+            i
+            for i, d in enumerate(dst)
+            if moved[i] and ((shared and dst.count(d) > 1) or dst[occupant.get(d, i)] == cur[i])
+        ]
+        if not blocked:
+            return moved
+        for i in blocked:
+            dst[i], moved[i] = cur[i], False
 
 
 @functools.lru_cache(maxsize=64)
