@@ -8,11 +8,13 @@ groups (two graph calls, every ``group_interval`` steps) and those that keep the
 the observation only normalises row and column by the larger grid). One onnxruntime thread.
 The steps come one right after another (warm caches); for 5 cars also after 50 ms of sleep
 each, as on cars, plain and with the runtime's rehearsal (``decision_ms_after_idle``).
-Prints one JSON object.
+Garbage is collected as the runtime does: frozen at start, then between steps, never inside
+one (:mod:`edge.pauses`). Prints one JSON object.
 """
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import sys
@@ -24,6 +26,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 
 from edge.decide import DecisionStep
+from edge.pauses import collect_between_steps, freeze_garbage
 from export.runtime import OnnxPolicy
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.rules import OBSTACLE, WALL, WATER
@@ -58,35 +61,41 @@ def run(
     by_kind: dict[str, list[int]] = {"forming_groups": [], "keeping_groups": []}
     spans: dict[str, list[int]] = {"masking": [], "inference": [], "safety": []}
     fresh = True
-    for i in range(steps + 5):
-        if fresh:
-            world.reset()
-            decide.reset()
-            static = {
-                k: frozenset(map(tuple, np.argwhere(world.layout[0] == c).tolist()))
-                for k, c in KINDS.items()
-            }
-        if config.task == "surround":
-            static["target"] = frozenset({tuple(world.target[0].tolist())})
-        slots = {int(s) + 1: int(s) for s in np.flatnonzero(world.present[0])}
-        cells = {car: tuple(world.pos[0, s].tolist()) for car, s in slots.items()}
-        if idle_s:
-            time.sleep(idle_s)
-        if rehearse:  # as the runtime: the last step, or an episode's first from where it stands
-            decide.rehearse() or decide.rehearse(slots, cells, static)
-            time.sleep(ANALYSIS_S)
-        t0 = time.perf_counter_ns()
-        decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
-        elapsed = time.perf_counter_ns() - t0
-        if i >= 5:  # warm-up
-            total.append(elapsed)
-            by_kind["forming_groups" if decision.formed else "keeping_groups"].append(elapsed)
-            for name, value in decision.spans_ns.items():
-                spans[name].append(value)
-        commands = np.full(world.slots, 4)
-        commands[list(slots.values())] = np.minimum(decision.commands, 4)
-        _, _, done = world.step(commands[None])
-        fresh = bool(done[0])
+    freeze_garbage()
+    gc.disable()  # as the runtime: collections between steps, never inside one
+    try:
+        for i in range(steps + 5):
+            if fresh:
+                world.reset()
+                decide.reset()
+                static = {
+                    k: frozenset(map(tuple, np.argwhere(world.layout[0] == c).tolist()))
+                    for k, c in KINDS.items()
+                }
+            if config.task == "surround":
+                static["target"] = frozenset({tuple(world.target[0].tolist())})
+            slots = {int(s) + 1: int(s) for s in np.flatnonzero(world.present[0])}
+            cells = {car: tuple(world.pos[0, s].tolist()) for car, s in slots.items()}
+            if idle_s:
+                time.sleep(idle_s)
+            if rehearse:  # as the runtime: the last step, or a new episode's first step
+                decide.rehearse() or decide.rehearse(slots, cells, static)
+                time.sleep(ANALYSIS_S)
+            t0 = time.perf_counter_ns()
+            decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
+            elapsed = time.perf_counter_ns() - t0
+            if i >= 5:  # warm-up
+                total.append(elapsed)
+                by_kind["forming_groups" if decision.formed else "keeping_groups"].append(elapsed)
+                for name, value in decision.spans_ns.items():
+                    spans[name].append(value)
+            commands = np.full(world.slots, 4)
+            commands[list(slots.values())] = np.minimum(decision.commands, 4)
+            _, _, done = world.step(commands[None])
+            fresh = bool(done[0])
+            collect_between_steps(i)  # as the runtime, after the dispatch
+    finally:
+        gc.enable()
     agents = config.agents[1]
     p99 = _percentiles(total)["p99"]
     return {

@@ -74,11 +74,14 @@ class DecisionStep:
         self.task = task
         self.spec = spec
         self.owner = np.zeros(0, np.int64)
+        self._fleet_key: dict[int, int] | None = None  # the slots _fleet_arrays are for
+        self._fleet_arrays: tuple[np.ndarray, ...] | None = None
         self.reset()
 
     def reset(self) -> None:
         """A new episode: memories, last actions and rewards, returns, the step counter. The
-        slots stay (empty), so the policy keeps its bindings for the same fleet."""
+        slots stay (empty), so the policy keeps its bindings and the fleet's arrays
+        (:meth:`_fleet`) stay valid for the same fleet."""
         slots = len(self.owner)
         self.policy.reset(slots)
         self.t = 0
@@ -90,8 +93,6 @@ class DecisionStep:
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
         self._last: tuple | None = None  # the last step's inputs, for rehearse
-        self._fleet_key: dict[int, int] | None = None  # the slots _fleet_arrays are for
-        self._fleet_arrays: tuple[np.ndarray, ...] | None = None
         self._owned_key: dict[int, int] | None = None  # the slots last settled: cars own them
 
     @property

@@ -18,6 +18,8 @@ import gc
 import os
 
 REALTIME_PRIORITY = 10  # SCHED_RR priority (1-99): above every ordinary thread, far below IRQs
+#: Every this many collections between steps, a full one (the others: the youngest objects).
+FULL_COLLECTION_EVERY = 100
 
 
 def freeze_garbage() -> None:
@@ -26,6 +28,13 @@ def freeze_garbage() -> None:
     would measure a round trip that long)."""
     gc.collect()
     gc.freeze()
+
+
+def collect_between_steps(count: int) -> None:
+    """The collection the edge runs between two steps, with automatic collection disabled: the
+    young objects, and every ``FULL_COLLECTION_EVERY``-th (``count`` from 0) all of them but
+    the frozen ones."""
+    gc.collect(2 if count % FULL_COLLECTION_EVERY == 0 else 0)
 
 
 def run_realtime(priority: int = REALTIME_PRIORITY) -> None:

@@ -35,14 +35,11 @@ from edge.camera import Frame, FrameGrabber, yield_to_dispatch
 from edge.decide import DecisionStep
 from edge.fleet import Fleet
 from edge.link import CarLink, CommandReport
+from edge.pauses import collect_between_steps
 from edge.telemetry import Telemetry
 from edge.vision import Scene, Vision
 
 ESTOP_GRACE_S = 0.05
-
-
-#: Every this many collections between steps, a full one (the others: the youngest objects).
-FULL_COLLECTION_EVERY = 100
 #: With no step for this long, collect anyway.
 COLLECT_IDLE_NS = 1_000_000_000
 #: Rehearse only when the last decision took less than this. A rehearsal runs while the frame
@@ -277,8 +274,7 @@ class Runtime:
         stops every thread for ~14 ms (measured), more than a command's 10 ms, whenever it
         happens to fall; frozen at start and run here, it is small and harmless."""
         start = time.monotonic_ns()
-        full = self._collections % FULL_COLLECTION_EVERY == 0
-        gc.collect(2 if full else 0)
+        collect_between_steps(self._collections)
         self._collected_ns = time.monotonic_ns()
         self._collections += 1
         self._longest_collection_ns = max(self._longest_collection_ns, self._collected_ns - start)

@@ -246,8 +246,8 @@ class OnnxPolicy:
         n = len(obs)
         if n != self._steps.obs.shape[0]:
             self._resize(n)
-        h, c = self._steps.state
-        forget(h, c, fresh)
+        if self.t:  # the first step after a reset starts from zeros anyway
+            forget(*self._steps.state, fresh)
         self.formed = self._forms_groups(present)
         if self.formed:
             self.reform = False
