@@ -160,13 +160,13 @@ def scene_codes(
     with every present agent's cell and the surround ``target`` (B, 2) cell marked. The arena
     core and the edge (which builds the scene from camera markers) both call this."""
     codes = padded_layout.copy()
-    batch, wp = codes.shape[0], codes.shape[2]
+    batch, hp, wp = codes.shape
     flat = codes.reshape(-1)
-    base = np.arange(batch)[:, None] * (codes.shape[1] * wp)
-    cells = base + (pos[..., 0] + view) * wp + pos[..., 1] + view
-    flat[cells[present]] |= AGENT_BIT
+    origin = view * wp + view  # where cell (0, 0) of arena 0 is in the flat padded codes
+    arenas = np.arange(batch)[:, None] * (hp * wp) + origin if batch > 1 else origin
+    flat[(pos[..., 0] * wp + pos[..., 1] + arenas)[present]] |= AGENT_BIT
     if target is not None:
-        flat[base[:, 0] + (target[:, 0] + view) * wp + target[:, 1] + view] |= OBJECTIVE_BIT
+        flat[target[:, 0] * wp + target[:, 1] + np.ravel(arenas)] |= OBJECTIVE_BIT
     return codes
 
 
