@@ -18,14 +18,13 @@ from itertools import chain
 
 import numpy as np
 
-from edge.safety import STOP, Filtered, filter_moves
+from edge.safety import Filtered, filter_moves
 from export.runtime import OnnxPolicy
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
 from udan.envs.observe import ObsSpec, observe
 from udan.envs.rules import ACTION_DELTAS, OBSTACLE, WAIT, WALL, WATER
 
 _KIND_CODES = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
-COMMAND_DELTAS = np.insert(ACTION_DELTAS, STOP, [0, 0], axis=0)  # (d_row, d_col) per command
 TASKS = ("find_water", "surround")
 
 
@@ -157,8 +156,8 @@ class DecisionStep:
             actions=np.asarray(actions, np.int64),
             commands=filtered.commands,
             rewards=rewards,
-            blocked=int(filtered.blocked.sum()),
-            stopped=int(filtered.stopped.sum()),
+            blocked=int(np.count_nonzero(filtered.blocked)),
+            stopped=int(np.count_nonzero(filtered.stopped)),
             spans_ns={"masking": t1 - t0, "inference": t2 - t1, "safety": t3 - t2},
             formed=self.policy.formed,
         )
@@ -193,8 +192,7 @@ class DecisionStep:
         obs = self._observe(padded, pos, present, target)
         if not self.policy.rehearse(obs, present[0], pos[0]):
             return False
-        others = np.array(blockers, np.int64).reshape(-1, 2)
-        filter_moves(layout, pos[0, idx], self.last_action[idx], others=others)
+        filter_moves(layout, pos[0, idx], self.last_action[idx], others=blockers)
         return True
 
     def settle(
@@ -327,11 +325,10 @@ class DecisionStep:
             others = others + (car_pos[in_move] + ACTION_DELTAS[doing]).tolist()
             expected = np.where(in_move[:, None], -1, expected)
             wanted = np.where(in_move, WAIT, actions)
-        blockers = np.array(others, np.int64).reshape(-1, 2)
-        filtered = filter_moves(layout, car_pos, wanted, expected=expected, others=blockers)
+        filtered = filter_moves(layout, car_pos, wanted, expected=expected, others=others)
         self.last_action[idx] = actions
-        step_to = car_pos + COMMAND_DELTAS[filtered.commands]
+        step_to = filtered.dest
         if in_move is not None:
-            step_to[in_move] = -1
+            step_to = np.where(in_move[:, None], -1, step_to)
         self.expected[idx] = step_to
         return filtered

@@ -30,6 +30,7 @@ class Filtered:
     commands: np.ndarray  # (N,) 0-4 the grid actions, 5 stop
     blocked: np.ndarray  # (N,) bool: a move the rules turned into a wait
     stopped: np.ndarray  # (N,) bool: a car seen off its expected cell, stopped
+    dest: np.ndarray  # (N, 2) the cell each car is in once its command is done
 
 
 def filter_moves(
@@ -38,17 +39,17 @@ def filter_moves(
     actions: np.ndarray,
     *,
     expected: np.ndarray | None = None,
-    others: np.ndarray | None = None,
+    others: np.ndarray | list[tuple[int, int]] | None = None,
 ) -> Filtered:
     """Commands for cars at ``pos`` (N, 2) wanting ``actions`` (N,) on ``layout`` (H, W) rules
     cell codes. ``expected`` (N, 2), where each car should be after its last command (rows of
-    -1: no expectation); ``others`` (M, 2), cells held by things the edge does not drive.
+    -1: no expectation); ``others`` (M, 2) or a list of pairs, cells held by things the edge
+    does not drive.
     Up to ``FEW_CARS`` cars in plain Python (:func:`udan.envs.rules.resolve_few`), more with
     the arrays of :func:`udan.envs.rules.resolve_moves`: the same commands either way."""
     pos = np.asarray(pos, dtype=np.int64).reshape(-1, 2)
     actions = np.asarray(actions, dtype=np.int64).reshape(-1)
-    if others is None:
-        others = np.zeros((0, 2), np.int64)
+    others = [] if others is None else others
     if expected is None:
         expected = np.full_like(pos, -1)
     filter_cars = _filter_few if len(pos) <= FEW_CARS else _filter_many
@@ -64,7 +65,7 @@ def _filter_few(
     pos: np.ndarray,
     actions: np.ndarray,
     expected: np.ndarray,
-    others: np.ndarray,
+    others: np.ndarray | list[tuple[int, int]],
 ) -> Filtered:
     """:func:`filter_moves` on Python lists: a few cars."""
     cells = pos.tolist()
@@ -72,7 +73,7 @@ def _filter_few(
     cur = list(map(tuple, cells))
     moving = [WAIT if s else a for s, a in zip(stopped, actions.tolist(), strict=True)]
     height, width = layout.shape
-    held = set(map(tuple, others.tolist()))
+    held = set(map(tuple, others.tolist() if isinstance(others, np.ndarray) else others))
     dst = []
     for (row, col), action in zip(cur, moving, strict=True):
         d_row, d_col = _DELTAS[action]
@@ -84,7 +85,13 @@ def _filter_few(
     commands = [
         STOP if s else WAIT if b else a for s, b, a in zip(stopped, blocked, moving, strict=True)
     ]
-    return Filtered(np.array(commands, np.int64), np.array(blocked, bool), np.array(stopped, bool))
+    dest = [d if m else c for d, m, c in zip(dst, moved, cur, strict=True)]
+    return Filtered(
+        np.array(commands, np.int64),
+        np.array(blocked, bool),
+        np.array(stopped, bool),
+        np.array(dest, np.int64).reshape(-1, 2),
+    )
 
 
 def _filter_many(
@@ -92,22 +99,23 @@ def _filter_many(
     pos: np.ndarray,
     actions: np.ndarray,
     expected: np.ndarray,
-    others: np.ndarray,
+    others: np.ndarray | list[tuple[int, int]],
 ) -> Filtered:
     """:func:`filter_moves` with array operations: many cars."""
     stopped = (expected != pos).any(axis=1) & (expected[:, 0] >= 0)  # seen off its cell
     moving = np.where(stopped, WAIT, actions)
     wants = moving != WAIT
     if not wants.any():  # nothing moves: nothing can conflict
-        return Filtered(np.where(stopped, STOP, moving), wants, stopped)
+        return Filtered(np.where(stopped, STOP, moving), wants, stopped, pos)
     passable = layout == FREE
+    others = np.asarray(others, np.int64).reshape(-1, 2)
     others = others[in_bounds(others, *layout.shape)]
     passable[others[:, 0], others[:, 1]] = False
     dest = resolve_moves(pos[None], moving[None], passable[None], np.ones((1, len(pos)), bool))[0]
     blocked = wants & np.logical_and.reduce(dest == pos, axis=1)  # a move that did not happen
     commands = np.where(blocked, WAIT, moving)
     commands[stopped] = STOP
-    return Filtered(commands=commands, blocked=blocked, stopped=stopped)
+    return Filtered(commands=commands, blocked=blocked, stopped=stopped, dest=dest)
 
 
 _DELTAS = [tuple(delta) for delta in ACTION_DELTAS.tolist()]

@@ -68,7 +68,7 @@ def test_filter_commands_a_few_cars_as_the_array_rules_do(seed: int, cars: int, 
     others = rng.integers(-1, 7, (held, 2))
     few = safety._filter_few(layout, pos, actions, expected, others)
     many = safety._filter_many(layout, pos, actions, expected, others)
-    for name in ("commands", "blocked", "stopped"):
+    for name in ("commands", "blocked", "stopped", "dest"):
         assert getattr(few, name).tolist() == getattr(many, name).tolist(), name
 
 
