@@ -16,7 +16,7 @@ import numpy as np
 import onnxruntime as ort
 
 from export.metadata import check_metadata
-from udan.envs.grouping import form_groups, group_rounds, neighbour_table
+from udan.envs.grouping import form_groups, group_rounds, neighbour_table, one_group_a_round
 from udan.envs.observe import ObsSpec
 
 OUTPUTS = ("q", "action", "h_out", "c_out")
@@ -140,7 +140,16 @@ class BoundGraph:
     def bind_groups(self, groups: np.ndarray) -> None:
         """Groups (G, s) in priority order for the calls from now on. Copied into the bound
         buffers when they have the same shapes (a steady fleet: binding costs ~10 µs an
-        input), bound anew otherwise."""
+        input), bound anew otherwise; groups that are each a round of their own (a small
+        fleet's always are) need only their members copied."""
+        members, bound_rounds = self.inputs["members"], self.inputs["round_groups"]
+        if (
+            one_group_a_round(groups)
+            and members.shape == groups.T.shape
+            and len(bound_rounds) == len(groups)
+        ):  # G rounds of G groups: round_groups holds ones already
+            np.copyto(members, groups.T)
+            return
         rounds = round_inputs(groups)
         if all(rounds[name].shape == self.inputs[name].shape for name in rounds):
             for name, array in rounds.items():

@@ -214,10 +214,21 @@ def test_round_inputs_list_the_groups_round_after_round(groups, members, round_g
 
 def test_bound_calls_match_single_calls_step_after_step(udan_policy):
     """BoundGraph's two bindings take turns on the state: the same outputs as one call each,
-    with groups of the same shapes copied into the bound buffers, and of other shapes bound."""
+    with groups of the same shapes copied into the bound buffers, and of other shapes bound;
+    groups in rounds of their own and groups sharing a round follow each other."""
     graph, rng, h, c, bound = _bound_on_random_state(udan_policy, seed=2)
     n = BOUND_AGENTS
-    for groups in (BOUND_GROUPS, BOUND_GROUPS[::-1], BOUND_GROUPS[1:], np.array([[5, 0, 1]])):
+    disjoint = np.array([[0, 1, 2], [3, 4, 5]])  # one round of two groups
+    for groups in (
+        BOUND_GROUPS,
+        BOUND_GROUPS[::-1],
+        BOUND_GROUPS[1:],
+        np.array([[5, 0, 1]]),
+        np.array([[0, 1, 2]]),
+        disjoint,
+        BOUND_GROUPS,
+        disjoint[::-1],
+    ):
         bound.bind_groups(groups)
         obs = rng.random((n, int(graph.metadata["obs_dim"])), dtype=np.float32)
         feeds = {"obs": obs, "h": h, "c": c, "neighbours": no_neighbours(n)}

@@ -185,15 +185,21 @@ def hypothetical_groups(
 VECTOR_ROUNDS_FROM = 48
 
 
+def one_group_a_round(groups: np.ndarray) -> bool:
+    """Whether groups (G, s) come from fewer than 2s agents: any two groups then share one, so
+    each group is a round of its own (:func:`group_rounds` without the search)."""
+    n_groups, size = groups.shape
+    return n_groups > 0 and 2 * size > int(groups.max()) + 1
+
+
 def group_rounds(groups: np.ndarray) -> list[np.ndarray]:
     """Split groups (in priority order) into rounds of disjoint groups; returns group indices.
 
     A group goes to the first round after the last round that holds any of its members, so an
     agent's groups are processed in priority order and each round can be one batched call.
     """
-    n_groups, size = groups.shape
-    if n_groups and 2 * size > int(groups.max()) + 1:
-        # fewer than 2 * size agents: any two groups share one, so each group is its own round
+    n_groups = len(groups)
+    if one_group_a_round(groups):
         return list(np.arange(n_groups)[:, None])
     if n_groups >= VECTOR_ROUNDS_FROM:
         return _rounds_by_relaxation(groups)
