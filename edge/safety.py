@@ -14,6 +14,7 @@ from where the camera sees it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,9 @@ import numpy as np
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT, in_bounds, resolve_few, resolve_moves
 
 STOP = 5  # edge.protocol.Action.STOP: halt the motors
+FEW_CARS = 24
+"""Fleets up to this size are filtered in plain Python: cheaper than numpy's per-call cost."""
+_DELTAS = [tuple(delta) for delta in ACTION_DELTAS.tolist()]  # (d_row, d_col) per action
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,14 +43,15 @@ def filter_moves(
     actions: np.ndarray,
     *,
     expected: np.ndarray | None = None,
-    others: np.ndarray | list[tuple[int, int]] | None = None,
+    others: np.ndarray | Sequence[Sequence[int]] | None = None,
 ) -> Filtered:
     """Commands for cars at ``pos`` (N, 2) wanting ``actions`` (N,) on ``layout`` (H, W) rules
     cell codes. ``expected`` (N, 2), where each car should be after its last command (rows of
     -1: no expectation); ``others`` (M, 2) or a list of pairs, cells held by things the edge
     does not drive.
-    Up to ``FEW_CARS`` cars in plain Python (:func:`udan.envs.rules.resolve_few`), more with
-    the arrays of :func:`udan.envs.rules.resolve_moves`: the same commands either way."""
+    The cars stand on the arena (the runtime passes only those). Up to ``FEW_CARS`` cars in
+    plain Python (:func:`udan.envs.rules.resolve_few`), more with the arrays of
+    :func:`udan.envs.rules.resolve_moves`: the same commands either way."""
     pos = np.asarray(pos, dtype=np.int64).reshape(-1, 2)
     actions = np.asarray(actions, dtype=np.int64).reshape(-1)
     others = [] if others is None else others
@@ -56,16 +61,12 @@ def filter_moves(
     return filter_cars(layout, pos, actions, expected, others)
 
 
-FEW_CARS = 24
-"""Fleets up to this size are filtered in plain Python: cheaper than numpy's per-call cost."""
-
-
 def _filter_few(
     layout: np.ndarray,
     pos: np.ndarray,
     actions: np.ndarray,
     expected: np.ndarray,
-    others: np.ndarray | list[tuple[int, int]],
+    others: np.ndarray | Sequence[Sequence[int]],
 ) -> Filtered:
     """:func:`filter_moves` on Python lists: a few cars."""
     cells = pos.tolist()
@@ -87,10 +88,10 @@ def _filter_few(
     ]
     dest = [d if m else c for d, m, c in zip(dst, moved, cur, strict=True)]
     return Filtered(
-        np.array(commands, np.int64),
-        np.array(blocked, bool),
-        np.array(stopped, bool),
-        np.array(dest, np.int64).reshape(-1, 2),
+        commands=np.array(commands, np.int64),
+        blocked=np.array(blocked, bool),
+        stopped=np.array(stopped, bool),
+        dest=np.array(dest, np.int64).reshape(-1, 2),
     )
 
 
@@ -99,14 +100,14 @@ def _filter_many(
     pos: np.ndarray,
     actions: np.ndarray,
     expected: np.ndarray,
-    others: np.ndarray | list[tuple[int, int]],
+    others: np.ndarray | Sequence[Sequence[int]],
 ) -> Filtered:
     """:func:`filter_moves` with array operations: many cars."""
     stopped = (expected != pos).any(axis=1) & (expected[:, 0] >= 0)  # seen off its cell
     moving = np.where(stopped, WAIT, actions)
     wants = moving != WAIT
     if not wants.any():  # nothing moves: nothing can conflict
-        return Filtered(np.where(stopped, STOP, moving), wants, stopped, pos)
+        return Filtered(np.where(stopped, STOP, moving), wants, stopped, pos.copy())
     passable = layout == FREE
     others = np.asarray(others, np.int64).reshape(-1, 2)
     others = others[in_bounds(others, *layout.shape)]
@@ -116,6 +117,3 @@ def _filter_many(
     commands = np.where(blocked, WAIT, moving)
     commands[stopped] = STOP
     return Filtered(commands=commands, blocked=blocked, stopped=stopped, dest=dest)
-
-
-_DELTAS = [tuple(delta) for delta in ACTION_DELTAS.tolist()]

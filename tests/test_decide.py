@@ -60,7 +60,6 @@ def test_filter_commands_a_few_cars_as_the_array_rules_do(seed: int, cars: int, 
     layout = np.zeros((6, 6), np.uint8)
     cells = rng.permutation(36)
     layout.flat[cells[:4]] = OBSTACLE
-    cars = min(cars, 32)
     start = cells[4 : 4 + cars]
     pos = np.stack([start // 6, start % 6], axis=-1)
     actions = rng.integers(0, 5, cars)
