@@ -14,7 +14,8 @@ from dataclasses import asdict
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from udan.envs.observe import CHANNELS, FEATURES, OBS_SPEC_VERSION, ObsSpec
+from udan.envs import observation_layout
+from udan.envs.observe import ObsSpec
 from udan.envs.rules import ACTIONS
 
 FORMAT = "udan-policy"
@@ -73,7 +74,7 @@ def build_metadata(
         "obs_dim": str(spec["obs_dim"]),
         "actions": json.dumps(list(ACTIONS)),
         "hidden": str(spec["hidden"]),
-        "communicates": "1" if spec["algo"] == "udan" else "0",
+        "communicates": "1" if spec["algo"] == "udan" and spec.get("messages", True) else "0",
         "group_size": str(spec["group_size"]),
         "group_interval": str(spec["group_interval"]),
         "leader_threshold": repr(float(spec["leader_threshold"])),
@@ -103,9 +104,10 @@ def check_metadata(meta: Mapping[str, str], expected: ObsSpec | None = None) -> 
             f"format {meta['format']} v{meta['format_version']} is not {FORMAT} v{FORMAT_VERSION}"
         )
     obs = json.loads(meta["obs_spec"])
-    if obs.get("version") != OBS_SPEC_VERSION:
-        problems.append(f"observation spec v{obs.get('version')} is not v{OBS_SPEC_VERSION}")
-    if tuple(obs.get("channels", ())) != CHANNELS or tuple(obs.get("features", ())) != FEATURES:
+    version, channels, features = observation_layout(obs)
+    if obs.get("version") != version:
+        problems.append(f"observation spec v{obs.get('version')} is not v{version}")
+    if tuple(obs.get("channels", ())) != channels or tuple(obs.get("features", ())) != features:
         problems.append("observation channels/features differ from this code's")
     if tuple(json.loads(meta["actions"])) != ACTIONS:
         problems.append(f"actions {meta['actions']} are not {list(ACTIONS)}")

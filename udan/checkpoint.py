@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from udan.envs.observe import OBS_SPEC_VERSION
+from udan.envs import observation_layout
 
 FORMAT = "udan-checkpoint"
 FORMAT_VERSION = 1
@@ -69,10 +69,11 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(
             f"{path}: checkpoint format {ckpt.get('format_version')} is not {FORMAT_VERSION}"
         )
-    if ckpt["obs_spec"].get("version") != OBS_SPEC_VERSION:
+    version = observation_layout(ckpt["obs_spec"])[0]
+    if ckpt["obs_spec"].get("version") != version:
         raise CheckpointError(
             f"{path}: observation spec v{ckpt['obs_spec'].get('version')} does not match this "
-            f"code's v{OBS_SPEC_VERSION}"
+            f"code's v{version}"
         )
     return ckpt
 

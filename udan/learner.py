@@ -38,10 +38,13 @@ class ModelSpec:
     state_dim: int = 0
     mix_agents: int = 0
     """QMIX only: the fixed number of agents its hypernetwork mixes (trained at fixed N)."""
+    messages: bool = True
+    """UDAN only: False builds the same learner without leaders, groups or messages (the
+    no-communication control: its Q head always gets a zero message)."""
 
     @property
     def communicates(self) -> bool:
-        return self.algo == "udan"
+        return self.algo == "udan" and self.messages
 
 
 class QMixer(nn.Module):
@@ -131,14 +134,46 @@ def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list
     return [torch.from_numpy(np.concatenate(buckets[key])) for key in sorted(buckets)]
 
 
-class Actor:
-    """Acts for B arenas with per-slot recurrent state; forms groups every ``interval`` steps."""
+#: ``udan-eval --ablate`` modes: what each replaces at acting time, and nothing else.
+ABLATIONS: dict[str, str] = {
+    "messages=zero": "every message is zero (the Q head's Q_s)",
+    "messages=shuffle": "each agent gets the message of its slot in another episode, same step",
+    "groups": "every agent is a group of its own: the message path runs over the agent alone",
+    "leaders=random": "as many leaders as the scorer picks, chosen at random among the agents",
+    "leaders=all": "every agent leads a group (in the scorer's order)",
+}
 
-    def __init__(self, model: MultiAgentQ, batch: int, slots: int) -> None:
+
+class Actor:
+    """Acts for B arenas with per-slot recurrent state; forms groups every ``interval`` steps.
+
+    ``ablate`` (one of :data:`ABLATIONS`) changes what it names at acting time; ``rng`` draws
+    the random leaders and message shuffles. The last step's features and messages are kept
+    (``feats``, ``messages``, each (B*N, H)) for probes.
+    """
+
+    def __init__(
+        self,
+        model: MultiAgentQ,
+        batch: int,
+        slots: int,
+        ablate: str | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        if ablate is not None:
+            if ablate not in ABLATIONS:
+                raise ValueError(f"unknown ablation {ablate!r}; known: {', '.join(ABLATIONS)}")
+            if not model.spec.communicates:
+                raise ValueError(f"--ablate {ablate}: this {model.spec.algo} model has no messages")
+            if ablate == "messages=shuffle" and batch < 2:
+                raise ValueError("--ablate messages=shuffle needs at least 2 episodes at once")
         self.model, self.batch, self.slots = model, batch, slots
+        self.ablate = ablate
+        self.rng = rng if rng is not None else np.random.default_rng(0)
         self.state = model.encoder.initial_state(batch * slots)
         self.groups: list[np.ndarray] = [np.zeros((0, 0), np.int64)] * batch
         self.rounds: list[torch.Tensor] = []  # the groups' rounds, made when they are formed
+        self.feats = self.messages = torch.zeros(0)
         self.t = 0
 
     def reset(self) -> None:
@@ -169,8 +204,11 @@ class Actor:
                 tables = neighbour_tables(pos, present, spec.attention_neighbours)
                 logits = self.model.leader(feats, neighbour_rows(tables))
                 prob = torch.sigmoid(logits).view(self.batch, self.slots).numpy()
+                prob = self._ablated_leaders(prob, present)
                 self.groups = [
-                    form_groups(
+                    np.flatnonzero(present[b])[:, None]
+                    if self.ablate == "groups"
+                    else form_groups(
                         pos[b],
                         present[b],
                         prob[b],
@@ -183,7 +221,36 @@ class Actor:
                 offsets = [b * self.slots for b in range(self.batch)]
                 self.rounds = merge_rounds(self.groups, offsets)
         self.t += 1
-        return self.model.head(feats, self.model.messages(feats, self.rounds))
+        self.feats = feats
+        self.messages = self._ablated_messages(self.model.messages(feats, self.rounds))
+        return self.model.head(feats, self.messages)
+
+    def _ablated_leaders(self, prob: np.ndarray, present: np.ndarray) -> np.ndarray:
+        """Leader probabilities (B, N) as the ablation has them (unchanged by default)."""
+        threshold = self.model.spec.leader_threshold
+        if self.ablate == "leaders=all":
+            return np.where(present, prob + 1.0, prob)  # all above the threshold, same order
+        if self.ablate != "leaders=random":
+            return prob
+        out = np.zeros_like(prob)
+        for b in range(self.batch):
+            slots = np.flatnonzero(present[b])
+            count = int((prob[b, slots] > threshold).sum())
+            chosen = self.rng.permutation(slots)[:count]
+            out[b, chosen] = 1.0 + self.rng.random(count)  # a random order for bridges too
+        return out
+
+    def _ablated_messages(self, messages: torch.Tensor) -> torch.Tensor:
+        """Messages (B*N, H) as the ablation has them (unchanged by default)."""
+        if self.ablate == "messages=zero":
+            return torch.zeros_like(messages)
+        if self.ablate != "messages=shuffle":
+            return messages
+        order = self.rng.permutation(self.batch)  # episode order[i] hears episode order[i+1]
+        source = np.empty(self.batch, dtype=np.int64)
+        source[order] = np.roll(order, -1)
+        per_episode = messages.view(self.batch, self.slots, -1)
+        return per_episode[torch.from_numpy(source)].reshape(messages.shape)
 
     def act(
         self,

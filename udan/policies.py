@@ -7,6 +7,7 @@ The oracle is a centralised planner with the whole map, obeying the same world r
   already planned, a goal held for the rest of the episode once reached); several priority
   orders are tried and the one with the highest planned score is kept. Its plan executes
   exactly under :func:`udan.envs.rules.resolve_moves`.
+- hidden_goal: every agent walks straight into the goal's zone (nothing blocks a walk there).
 - surround: every step the target's flight is predicted where its rule forces it (a unique best
   move), each agent is assigned one side of that cell (minimum total distance) and moves
   greedily along the shortest path, in order of distance, never into a cell another agent
@@ -45,6 +46,17 @@ class RandomPolicy:
 
     def act(self, env: ArenaBatch) -> np.ndarray:
         return self.rng.integers(0, N_ACTIONS, size=(env.batch, env.slots))
+
+
+def walk_to_zone(pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Actions (B, N) that bring agents at ``pos`` (B, N, 2) one step nearer to within one cell
+    (Manhattan) of ``goal`` (B, N or 1, 2) on an empty arena: rows first, then columns; wait
+    once there."""
+    d_row, d_col = (goal - pos)[..., 0], (goal - pos)[..., 1]
+    there = np.abs(d_row) + np.abs(d_col) <= 1
+    by_row = np.where(d_row < 0, 0, 1)  # up, down
+    by_col = np.where(d_col < 0, 2, 3)  # left, right
+    return np.where(there, WAIT, np.where(d_row != 0, by_row, by_col))
 
 
 def distance_fields(passable: np.ndarray, goals: list[tuple[int, int]]) -> np.ndarray:
@@ -185,6 +197,8 @@ class OraclePolicy:
     def act(self, env: ArenaBatch) -> np.ndarray:
         if env.config.task == "find_water":
             return self._act_find_water(env)
+        if env.config.task == "hidden_goal":
+            return walk_to_zone(env.pos, env.goal[:, None])
         return self._act_surround(env)
 
     # ------------------------------------------------------------------ find_water

@@ -95,6 +95,8 @@ class TrainConfig:
     """T: steps between group formations."""
     leader_threshold: float = 0.5
     """Leader probability above which an agent leads a group."""
+    messages: str = "on"
+    """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
     leader_coef: float = 1.0
     """Weight of the leader classifier's BCE loss."""
     td_lambda: float = 0.8
@@ -309,6 +311,10 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
     env = make_vec(
         cfg.env, batch=cfg.n_envs, seed=cfg.seed, agents=cfg.agents, obstacles=cfg.obstacles
     )
+    if cfg.messages not in ("on", "off"):
+        raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
+    if cfg.messages == "off" and cfg.algo != "udan":
+        raise EnvConfigError(f"--messages off is for udan; {cfg.algo} has no messages")
     if cfg.algo == "qmix" and env.config.agents[0] != env.config.agents[1]:
         raise EnvConfigError("qmix mixes a fixed number of agents: give --agents a single count")
     spec = ModelSpec(
@@ -323,6 +329,7 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         leader_threshold=cfg.leader_threshold,
         state_dim=env.global_state().shape[1] if cfg.algo == "qmix" else 0,
         mix_agents=env.slots if cfg.algo == "qmix" else 0,
+        messages=cfg.messages == "on",
     )
     torch.manual_seed(cfg.seed)
     return env, MultiAgentQ(spec)
@@ -353,10 +360,11 @@ class Run:
         self.checkpoint: dict | None = None
         if resume:
             ckpt = load_checkpoint(self.path)
+            defaults = asdict(TrainConfig())  # a field newer than the run has its default
             diff = sorted(
                 k
                 for k, v in asdict(cfg).items()
-                if k not in RESUMABLE_FIELDS and ckpt["config"].get(k) != v
+                if k not in RESUMABLE_FIELDS and ckpt["config"].get(k, defaults[k]) != v
             )
             if diff:
                 raise CheckpointError(

@@ -16,6 +16,7 @@ from udan.envs.errors import EnvConfigError, UnknownEnvError
 _PARALLEL: dict[str, str] = {
     "arena/surround": "udan.envs.pz:make_arena",
     "arena/find_water": "udan.envs.pz:make_arena",
+    "arena/hidden_goal": "udan.envs.pz:make_hidden_goal",
     "magent/pursuit": "udan.envs.magent:make",
     "magent/tiger": "udan.envs.magent:make",
     "magent/queue": "udan.envs.magent:make",
@@ -23,9 +24,27 @@ _PARALLEL: dict[str, str] = {
 _VECTOR: dict[str, str] = {
     "arena/surround": "udan.envs.arena:make_batch",
     "arena/find_water": "udan.envs.arena:make_batch",
+    "arena/hidden_goal": "udan.envs.hidden_goal:make_batch",
 }
 
-__all__ = ["EnvConfigError", "UnknownEnvError", "env_names", "make", "make_vec"]
+__all__ = [
+    "EnvConfigError",
+    "UnknownEnvError",
+    "env_names",
+    "make",
+    "make_vec",
+    "observation_layout",
+]
+
+
+def observation_layout(obs_spec: dict) -> tuple[int, tuple[str, ...], tuple[str, ...]]:
+    """(version, channels, features) this code has for a saved spec's ``name``: each task with
+    an observation of its own versions it apart (no name: the find_water/surround spec)."""
+    from udan.envs import hidden_goal, observe
+
+    if obs_spec.get("name") == hidden_goal.SPEC_NAME:
+        return hidden_goal.SPEC_VERSION, hidden_goal.CHANNELS, hidden_goal.FEATURES
+    return observe.OBS_SPEC_VERSION, observe.CHANNELS, observe.FEATURES
 
 
 def env_names() -> list[str]:

@@ -14,6 +14,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.hidden_goal import HiddenGoalBatch, HiddenGoalConfig
 from udan.envs.rules import N_ACTIONS
 
 
@@ -27,11 +28,15 @@ class ArenaParallelEnv(ParallelEnv):
     }
 
     def __init__(
-        self, config: ArenaConfig, seed: int | None = 0, render_mode: str | None = None
+        self,
+        config: ArenaConfig | HiddenGoalConfig,
+        seed: int | None = 0,
+        render_mode: str | None = None,
     ) -> None:
         self.config = config
         self.render_mode = render_mode
-        self._core = ArenaBatch(config, batch=1, seed=seed)
+        core = HiddenGoalBatch if isinstance(config, HiddenGoalConfig) else ArenaBatch
+        self._core = core(config, batch=1, seed=seed)
         joins = config.max_steps if config.churn > 0 else 0
         self.possible_agents = [f"agent_{i}" for i in range(config.agents[1] + joins)]
         self.agents: list[str] = []
@@ -96,3 +101,10 @@ def make_arena(
     """Registry factory for ``arena/<task>``: options are :class:`ArenaConfig` fields."""
     config = ArenaConfig(task=name.removeprefix("arena/"), **options)
     return ArenaParallelEnv(config, seed=seed, render_mode=render_mode)
+
+
+def make_hidden_goal(
+    name: str, seed: int | None = 0, render_mode: str | None = None, **options: Any
+) -> ArenaParallelEnv:
+    """Registry factory for ``arena/hidden_goal``: options are :class:`HiddenGoalConfig` fields."""
+    return ArenaParallelEnv(HiddenGoalConfig(**options), seed=seed, render_mode=render_mode)
