@@ -10,14 +10,16 @@ import argparse
 import csv
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from udan.ablations import ABLATIONS
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.errors import parse_range
 from udan.policies import POLICIES, Policy
+from udan.probe import format_probe, probe
 
 
 @dataclass
@@ -31,6 +33,8 @@ class CellResult:
     """Mean over episodes of the average agent's episode return."""
     target_score: float
     """surround only: the target's episode score (0 for find_water)."""
+    scores: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False, repr=False)
+    """Each episode's average agent score, in episode order (for paired comparisons)."""
 
 
 def run_cell(
@@ -52,7 +56,12 @@ def run_cell(
         _, _, done = env.step(policy.act(env))
     per_agent = env.episode_return.sum(axis=1) / agents
     return CellResult(
-        agents, obstacles, episodes, float(per_agent.mean()), float(env.target_score.mean())
+        agents,
+        obstacles,
+        episodes,
+        float(per_agent.mean()),
+        float(env.target_score.mean()),
+        per_agent,
     )
 
 
@@ -105,19 +114,87 @@ def write_csv(results: list[CellResult], path: Path) -> None:
 
 
 class CheckpointPolicy:
-    """A trained checkpoint acting greedily, with per-slot memory (fresh for new agents)."""
+    """A trained checkpoint acting greedily, with per-slot memory (fresh for new agents).
 
-    def __init__(self, model) -> None:
-        self.model = model
+    ``ablate`` names one of :data:`udan.learner.ABLATIONS`; its random draws come from ``seed``.
+    """
+
+    def __init__(self, model, ablate: str | None = None, seed: int = 0) -> None:
+        self.model, self.ablate, self.seed = model, ablate, seed
         self.actor = None
 
     def reset(self, env) -> None:
         from udan.learner import Actor
 
-        self.actor = Actor(self.model, env.batch, env.slots)
+        rng = np.random.default_rng(self.seed)
+        self.actor = Actor(self.model, env.batch, env.slots, self.ablate, rng)
 
     def act(self, env) -> np.ndarray:
         return self.actor.act(env.observe(), env.present, env.pos, env.joined)
+
+
+#: Two-sided 95 % quantile of the normal distribution: cells have >= 30 paired episodes, where
+#: the t quantile is within 2 % of it (100 episodes: 0.4 %).
+Z95 = 1.959964
+
+
+def paired_difference(full: CellResult, ablated: CellResult) -> tuple[float, float]:
+    """Mean of ablated - full over the same episodes, and the half-width of its 95 % CI."""
+    diff = ablated.scores - full.scores
+    return float(diff.mean()), float(Z95 * diff.std(ddof=1) / np.sqrt(diff.size))
+
+
+def format_ablation(
+    full: list[CellResult], ablated: dict[str, list[CellResult]], title: str
+) -> str:
+    """Markdown table per agent count (cells of every obstacle count pooled by episode): the
+    full model's score, each ablation's, and the paired difference with its 95 % CI."""
+    agents = sorted({r.agents for r in full})
+    pooled = {
+        name: {
+            n: CellResult(
+                n, -1, 0, 0.0, 0.0, np.concatenate([r.scores for r in res if r.agents == n])
+            )
+            for n in agents
+        }
+        for name, res in {"full": full, **ablated}.items()
+    }
+    head = "| agents | full | " + " | ".join(f"{m} | Δ {m} [95 % CI]" for m in ablated) + " |"
+    lines = [f"**{title}**", "", head, "|---" * (2 + 2 * len(ablated)) + "|"]
+    for n in agents:
+        base = pooled["full"][n]
+        cells = [f"{base.scores.mean():.2f}"]
+        for name in ablated:
+            mean, half = paired_difference(base, pooled[name][n])
+            cells += [
+                f"{pooled[name][n].scores.mean():.2f}",
+                f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]",
+            ]
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def format_bounds(results: list[CellResult], config, title: str) -> str:
+    """hidden_goal: each agent count's score beside the no-message bound and the oracle's."""
+    from udan.envs.hidden_goal import no_message_bound, oracle_score
+
+    size = (config.height, config.width, config.max_steps)
+
+    lines = [
+        f"**{title}**",
+        "",
+        "| agents | score | no-message bound | oracle | above the bound |",
+        "|---|---|---|---|---|",
+    ]
+    for n in sorted({r.agents for r in results}):
+        scores = np.concatenate([r.scores for r in results if r.agents == n])
+        bound, best = no_message_bound(*size, n), oracle_score(*size, n)
+        half = Z95 * scores.std(ddof=1) / np.sqrt(scores.size)
+        lines.append(
+            f"| {n} | {scores.mean():.2f} ± {half:.2f} | {bound:.2f} | {best:.2f} | "
+            f"{scores.mean() - bound:+.2f} |"
+        )
+    return "\n".join(lines)
 
 
 def load_sources(args: argparse.Namespace) -> list[tuple[str, str, Policy]]:
@@ -202,6 +279,30 @@ def plot_comparison(tables: dict[str, list[CellResult]], env_name: str, path: Pa
     plt.close(fig)
 
 
+def _probed_model(args: argparse.Namespace, sources: list):
+    """The one checkpoint's model that ``--ablate`` / ``--probe`` act on (None without them);
+    refuses what cannot be ablated or probed."""
+    if not args.ablate and not args.probe:
+        return None
+    unknown = [m for m in args.ablate if m not in ABLATIONS]
+    if unknown:
+        raise EnvConfigError(
+            f"--ablate: unknown mode {unknown[0]!r}; known: {', '.join(ABLATIONS)}"
+        )
+    policies = [policy for _, _, policy in sources if isinstance(policy, CheckpointPolicy)]
+    if len(sources) != 1 or len(policies) != 1:
+        raise EnvConfigError("--ablate/--probe take exactly one checkpoint and no --policy")
+    model = policies[0].model
+    if not model.spec.communicates:
+        what = "--ablate" if args.ablate else "--probe"
+        raise EnvConfigError(f"{what}: this {model.spec.algo} checkpoint has no messages")
+    if args.probe and sources[0][1] != "arena/hidden_goal":
+        raise EnvConfigError("--probe needs arena/hidden_goal (a goal the messages could carry)")
+    if "messages=shuffle" in args.ablate and args.episodes < 2:
+        raise EnvConfigError("--ablate messages=shuffle needs --episodes >= 2")
+    return model
+
+
 def _slug(label: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in label).strip("_")
 
@@ -221,6 +322,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--out", type=Path, help="folder for CSVs, heatmap PNGs and the comparison plot"
     )
+    parser.add_argument(
+        "--ablate",
+        type=lambda text: [m.strip() for m in text.split(",") if m.strip()],
+        default=[],
+        metavar="MODE[,MODE...]",
+        help="also play the checkpoint with each ablation, paired on the same episodes: "
+        + "; ".join(f"{name}: {what}" for name, what in ABLATIONS.items()),
+    )
+    parser.add_argument(
+        "--probe",
+        action="store_true",
+        help="arena/hidden_goal: a linear probe of the goal in the messages (udan.probe)",
+    )
     args = parser.parse_args(argv)
     from udan.checkpoint import CheckpointError
 
@@ -237,15 +351,29 @@ def main(argv: list[str] | None = None) -> int:
         sources = load_sources(args)
         if args.csv is not None and len(sources) > 1:
             raise EnvConfigError("--csv takes one source; use --out for several")
+        probed = _probed_model(args, sources)
         started = time.perf_counter()
         tables = {
             label: evaluate(env_name, policy, agents, obstacles, args.episodes, args.seed)
             for label, env_name, policy in sources
         }
+        ablated = {
+            mode: evaluate(
+                sources[0][1],
+                CheckpointPolicy(probed, mode, args.seed),
+                agents,
+                obstacles,
+                args.episodes,
+                args.seed,
+            )
+            for mode in args.ablate
+        }
+        probes = probe(probed, agents, args.episodes, args.seed) if args.probe else []
     except (EnvConfigError, CheckpointError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
     env_name = sources[0][1]
+    reports = []  # markdown tables written to --out/report.md
     for label, results in tables.items():
         title = (
             f"{env_name}, {label}: average agent score "
@@ -256,9 +384,26 @@ def main(argv: list[str] | None = None) -> int:
             print()
             print(format_table(results, "target_score", f"{env_name}, {label}: target score"))
         print()
+        if env_name == "arena/hidden_goal":
+            config = make_vec(env_name, batch=1, agents=agents[1], obstacles=0).config
+            reports.append(format_bounds(results, config, f"{env_name}, {label}: bounds"))
         if args.out is not None:
             write_csv(results, args.out / f"{_slug(label)}.csv")
             plot_heatmap(results, title, args.out / f"{_slug(label)}.png")
+    if ablated:
+        label = sources[0][0]
+        title = (
+            f"{env_name}, {label}: ablations, paired on the same {args.episodes} episodes per cell"
+        )
+        reports.append(format_ablation(tables[label], ablated, title))
+    if probes:
+        reports.append(
+            format_probe(probes, f"{env_name}, {sources[0][0]}: linear probe of the goal's cell")
+        )
+    for report in reports:
+        print(report, end="\n\n")
+    if reports and args.out is not None:
+        (args.out / "report.md").write_text("\n\n".join(reports) + "\n")
     if args.csv is not None:
         write_csv(next(iter(tables.values())), args.csv)
     if args.out is not None and len(tables) > 1:

@@ -14,6 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from udan.ablations import ABLATIONS
 from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, neighbour_tables
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
@@ -134,16 +135,6 @@ def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list
     return [torch.from_numpy(np.concatenate(buckets[key])) for key in sorted(buckets)]
 
 
-#: ``udan-eval --ablate`` modes: what each replaces at acting time, and nothing else.
-ABLATIONS: dict[str, str] = {
-    "messages=zero": "every message is zero (the Q head's Q_s)",
-    "messages=shuffle": "each agent gets the message of its slot in another episode, same step",
-    "groups": "every agent is a group of its own: the message path runs over the agent alone",
-    "leaders=random": "as many leaders as the scorer picks, chosen at random among the agents",
-    "leaders=all": "every agent leads a group (in the scorer's order)",
-}
-
-
 class Actor:
     """Acts for B arenas with per-slot recurrent state; forms groups every ``interval`` steps.
 
@@ -174,6 +165,7 @@ class Actor:
         self.groups: list[np.ndarray] = [np.zeros((0, 0), np.int64)] * batch
         self.rounds: list[torch.Tensor] = []  # the groups' rounds, made when they are formed
         self.feats = self.messages = torch.zeros(0)
+        self.leader_explore = 0.0  # training rollouts set it (TrainConfig.leader_explore)
         self.t = 0
 
     def reset(self) -> None:
@@ -184,12 +176,19 @@ class Actor:
 
     @torch.no_grad()
     def values(
-        self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray, fresh: np.ndarray
+        self,
+        obs: np.ndarray,
+        present: np.ndarray,
+        pos: np.ndarray,
+        fresh: np.ndarray,
+        rng: np.random.Generator | None = None,
     ) -> torch.Tensor:
         """One decision step's outputs (B*N, actions): Q values, or COMA's policy logits.
 
         Advances each agent's memory (``fresh`` marks slots whose agent is new) and, for UDAN,
-        re-forms groups every ``group_interval`` steps or when a member has left.
+        re-forms groups every ``group_interval`` steps or when a member has left. With ``rng``
+        and a ``leader_explore`` above 0 (training rollouts), each agent the scorer passes over
+        leads anyway with that probability.
         """
         spec = self.model.spec
         feats, self.state = self.model.encoder(
@@ -205,6 +204,10 @@ class Actor:
                 logits = self.model.leader(feats, neighbour_rows(tables))
                 prob = torch.sigmoid(logits).view(self.batch, self.slots).numpy()
                 prob = self._ablated_leaders(prob, present)
+                if self.leader_explore > 0 and rng is not None:
+                    explore = present & (rng.random(prob.shape) < self.leader_explore)
+                    lead = np.nextafter(np.float32(spec.leader_threshold), np.float32(2))
+                    prob = np.where(explore, np.maximum(prob, lead), prob)
                 self.groups = [
                     np.flatnonzero(present[b])[:, None]
                     if self.ablate == "groups"
@@ -262,7 +265,7 @@ class Actor:
         rng: np.random.Generator | None = None,
     ) -> np.ndarray:
         """Greedy (or epsilon-greedy) actions (B, N)."""
-        q = self.values(obs, present, pos, fresh)
+        q = self.values(obs, present, pos, fresh, rng)
         actions = q.argmax(-1).numpy().reshape(self.batch, self.slots)
         if epsilon > 0:
             explore = rng.random(actions.shape) < epsilon

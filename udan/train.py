@@ -95,6 +95,9 @@ class TrainConfig:
     """T: steps between group formations."""
     leader_threshold: float = 0.5
     """Leader probability above which an agent leads a group."""
+    leader_explore: float = 0.0
+    """UDAN: chance that an agent the leader scorer passes over leads anyway in a training
+    rollout, so groups, and gradients through the messages, exist before the scorer picks any."""
     messages: str = "on"
     """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
     leader_coef: float = 1.0
@@ -313,6 +316,8 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
     )
     if cfg.messages not in ("on", "off"):
         raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
+    if not 0.0 <= cfg.leader_explore <= 1.0:
+        raise EnvConfigError(f"--leader-explore {cfg.leader_explore} is not a probability")
     if cfg.messages == "off" and cfg.algo != "udan":
         raise EnvConfigError(f"--messages off is for udan; {cfg.algo} has no messages")
     if cfg.algo == "qmix" and env.config.agents[0] != env.config.agents[1]:
@@ -491,6 +496,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
         optim.load_state_dict(run.checkpoint["optimizer"])
         replay.load(replay_path)
     actor = Actor(model, env.batch, env.slots)
+    actor.leader_explore = cfg.leader_explore
     while run.running:
         epsilon = run.epsilon()
         replay.add(rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0))

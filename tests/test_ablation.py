@@ -1,0 +1,193 @@
+"""udan-eval --ablate and --probe: each ablation changes exactly what it names; the probe finds a
+goal where there is one; the CLIs end to end on arena/hidden_goal."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from udan.envs import make_vec
+from udan.learner import Actor, ModelSpec, MultiAgentQ
+from udan.probe import ridge_fit, ridge_r2
+
+BIN = Path(sys.executable).parent
+BATCH, AGENTS = 6, 6
+
+
+def _model() -> MultiAgentQ:
+    torch.manual_seed(0)
+    model = MultiAgentQ(ModelSpec(algo="udan", obs_dim=25, n_actions=5, group_size=3))
+    model.eval()
+    return model
+
+
+def _stream(steps: int = 7):
+    """A recorded rollout of arena/hidden_goal (random moves): what every actor is fed."""
+    env = make_vec("arena/hidden_goal", batch=BATCH, seed=4, agents=AGENTS, obstacles=0)
+    obs, rng, out = env.reset(), np.random.default_rng(1), []
+    for _ in range(steps):
+        out.append((obs, env.present.copy(), env.pos.copy(), env.joined.copy()))
+        obs, _, _ = env.step(rng.integers(0, 5, (BATCH, AGENTS)))
+    return out
+
+
+def _play(model: MultiAgentQ, ablate: str | None) -> list[dict]:
+    """Per step: groups, features and messages of an actor fed the recorded stream."""
+    actor = Actor(model, BATCH, AGENTS, ablate, np.random.default_rng(2))
+    steps = []
+    for obs, present, pos, fresh in _stream():
+        actor.act(obs, present, pos, fresh)
+        steps.append(
+            {
+                "groups": [g.copy() for g in actor.groups],
+                "feats": actor.feats.view(BATCH, AGENTS, -1).clone(),
+                "messages": actor.messages.view(BATCH, AGENTS, -1).clone(),
+            }
+        )
+    return steps
+
+
+@pytest.fixture(scope="module")
+def plain_and_model():
+    model = _model()
+    # a threshold at the median leader probability: some agents lead, some do not
+    obs, present, pos, fresh = _stream(1)[0]
+    actor = Actor(model, BATCH, AGENTS)
+    actor.act(obs, present, pos, fresh)
+    from udan.envs.grouping import neighbour_tables
+    from udan.learner import neighbour_rows
+
+    with torch.no_grad():
+        tables = neighbour_tables(pos, present, model.spec.attention_neighbours)
+        prob = torch.sigmoid(model.leader(actor.feats, neighbour_rows(tables))).numpy()
+    model.spec = dataclasses.replace(model.spec, leader_threshold=float(np.median(prob)))
+    return _play(model, None), model
+
+
+def _same_groups(a: list[np.ndarray], b: list[np.ndarray]) -> bool:
+    return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_messages_zero_only_zeroes_the_messages(plain_and_model):
+    plain, model = plain_and_model
+    for mine, base in zip(_play(model, "messages=zero"), plain, strict=True):
+        assert _same_groups(mine["groups"], base["groups"])
+        assert torch.equal(mine["feats"], base["feats"])
+        assert not mine["messages"].any()
+    assert any(step["messages"].any() for step in plain)
+
+
+def test_messages_shuffle_hands_each_episode_anothers_messages(plain_and_model):
+    plain, model = plain_and_model
+    mine = _play(model, "messages=shuffle")
+    for step, base in zip(mine, plain, strict=True):
+        assert _same_groups(step["groups"], base["groups"])
+        assert torch.equal(step["feats"], base["feats"])
+        for b in range(BATCH):  # episode b's messages are those of another episode
+            assert any(
+                torch.equal(step["messages"][b], base["messages"][s])
+                for s in range(BATCH)
+                if s != b
+            )
+    assert not all(
+        torch.equal(m["messages"], p["messages"]) for m, p in zip(mine, plain, strict=True)
+    )
+
+
+def test_groups_ablation_puts_every_agent_in_a_group_of_its_own(plain_and_model):
+    plain, model = plain_and_model
+    mine = _play(model, "groups")
+    for step, base in zip(mine, plain, strict=True):
+        assert torch.equal(step["feats"], base["feats"])
+        for groups in step["groups"]:
+            assert groups.shape == (AGENTS, 1)
+            assert groups[:, 0].tolist() == list(range(AGENTS))
+    assert not all(
+        torch.equal(m["messages"], p["messages"]) for m, p in zip(mine, plain, strict=True)
+    )
+
+
+def test_random_leaders_are_as_many_as_the_learned_ones(plain_and_model):
+    plain, model = plain_and_model
+    mine = _play(model, "leaders=random")
+    for step, base in zip(mine, plain, strict=True):
+        counts = [len(g) for g in step["groups"]]
+        assert counts == [len(g) for g in base["groups"]]
+    assert not all(_same_groups(m["groups"], p["groups"]) for m, p in zip(mine, plain, strict=True))
+
+
+def test_all_leaders_means_a_group_per_agent_led_by_it(plain_and_model):
+    plain, model = plain_and_model
+    for step in _play(model, "leaders=all"):
+        for groups in step["groups"]:
+            assert sorted(groups[:, 0].tolist()) == list(range(AGENTS))
+            assert groups.shape[1] == model.spec.group_size
+    assert any(len(g) < AGENTS for step in plain for g in step["groups"])
+
+
+def test_ablations_refuse_a_model_without_messages():
+    spec = ModelSpec(algo="udan", obs_dim=25, n_actions=5, messages=False)
+    with pytest.raises(ValueError, match="has no messages"):
+        Actor(MultiAgentQ(spec), 2, 2, "messages=zero")
+
+
+def test_probe_finds_a_goal_in_a_message_that_carries_it_and_none_in_one_that_does_not():
+    rng = np.random.default_rng(0)
+    mix = rng.normal(size=(2, 16))  # how the sender writes the goal into the message
+
+    def data(n: int, carries: bool):
+        goal = rng.integers(0, 9, (n, 2)).astype(float)
+        noise = rng.normal(size=(n, 16))
+        message = noise + (goal @ mix if carries else 0.0)
+        return message, goal
+
+    train, test = data(3000, True), data(3000, True)
+    assert ridge_r2(ridge_fit(*train), *test) > 0.9
+    train, test = data(3000, False), data(3000, False)
+    assert abs(ridge_r2(ridge_fit(*train), *test)) < 0.02
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(args, capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
+    common = ["--env", "arena/hidden_goal", "--agents", "2-3", "--obstacles", "0"]
+    common += ["--steps", "640", "--n-envs", "8", "--batch-episodes", "8"]
+    for name, extra in (("udan", []), ("quiet", ["--messages", "off"])):
+        out = _run(str(BIN / "udan-train"), *common, *extra, "--out", str(tmp_path / name))
+        assert out.returncode == 0, out.stderr
+    ckpt = str(tmp_path / "udan" / "checkpoint.pt")
+    out = _run(
+        str(BIN / "udan-eval"),
+        ckpt,
+        "--agents",
+        "2-3",
+        "--obstacles",
+        "0",
+        "--episodes",
+        "30",
+        "--ablate",
+        "messages=shuffle,leaders=all",
+        "--probe",
+        "--out",
+        str(tmp_path),
+    )
+    assert out.returncode == 0, out.stderr
+    report = (tmp_path / "report.md").read_text()
+    assert "no-message bound" in report and "Δ messages=shuffle" in report
+    assert "R² shuffled message" in report
+    out = _run(str(BIN / "udan-export"), ckpt, "-o", str(tmp_path / "policy.onnx"))
+    assert out.returncode == 0, out.stdout + out.stderr
+    quiet = str(tmp_path / "quiet" / "checkpoint.pt")
+    for flag in (["--ablate", "messages=zero"], ["--probe"]):
+        out = _run(str(BIN / "udan-eval"), quiet, "--agents", "2", "--obstacles", "0", *flag)
+        assert out.returncode == 2
+        assert out.stderr.count("\n") == 1 and "has no messages" in out.stderr
