@@ -24,6 +24,7 @@ from onnxruntime.capi.onnxruntime_pybind11_state import Fail, InvalidArgument, I
 
 from export.metadata import MetadataError, build_metadata, check_metadata
 from udan.envs.observe import ObsSpec
+from udan.paths import FolderError, ensure_folder
 
 # The torch side (udan.checkpoint, export.graph, .verify, .bench) is imported by the commands
 # that use it: a mistyped path is reported in a second, not after torch has loaded.
@@ -59,8 +60,10 @@ def output_path(checkpoint: Path, out: str | None) -> Path:
     path = Path(out)
     if path.is_dir():
         return path / "policy.onnx"
-    if not path.parent.is_dir():
-        raise InputError(f"output folder {path.parent} does not exist")
+    try:
+        ensure_folder(path.parent, "-o")
+    except FolderError as err:
+        raise InputError(str(err)) from None
     return path
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from export.metadata import check_metadata
+from export.metadata import MetadataError, check_metadata
 from udan.envs.grouping import form_groups, group_rounds, neighbour_table, one_group_a_round
 from udan.envs.observe import ObsSpec
 
@@ -203,16 +203,23 @@ class BoundGraph:
 class OnnxPolicy:
     """Greedy actions for one arena of N slots, step after step (the edge's policy).
 
-    Refuses (``MetadataError``) a file whose metadata does not fit this code or ``expected``.
+    Refuses (``MetadataError``) a file whose metadata does not fit this code, ``expected`` or
+    ``env``; :meth:`act` refuses observations of another width (ValueError, saying what it wants).
     At a group-formation step the graph runs twice: once for the features and leader scores,
     once more from those features with the groups formed from them (group formation is numpy,
     between the two; export/README.md).
     """
 
-    def __init__(self, path: str | Path | bytes, expected: ObsSpec | None = None) -> None:
+    def __init__(
+        self, path: str | Path | bytes, expected: ObsSpec | None = None, env: str | None = None
+    ) -> None:
         self.graph = PolicyGraph(path)
         meta = self.graph.metadata
         check_metadata(meta, expected)
+        if env is not None and meta["env"] != env:
+            raise MetadataError(f"the policy was trained on {meta['env']}, not {env}")
+        self.width = int(meta["obs_dim"])
+        self._expects = f"({meta['env']}) expects observations (N, {self.width}) float32"
         self.hidden = int(meta["hidden"])
         self.k = int(meta["group_size"])
         self.interval = int(meta["group_interval"])
@@ -252,6 +259,8 @@ class OnnxPolicy:
         """Greedy actions (N,) from ``obs`` (N, D) float32, ``present`` (N,), cell ``pos`` (N, 2)
         and ``fresh`` (N,) (slots whose agent is new: their memory starts from zero). A fleet
         that grew since the last step gets zero state for its new slots."""
+        if obs.ndim != 2 or obs.shape[1] != self.width:
+            raise ValueError(f"observations of shape {obs.shape}: this policy {self._expects}")
         n = len(obs)
         if n != self._steps.obs.shape[0]:
             self._resize(n)

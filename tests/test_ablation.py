@@ -186,6 +186,16 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
     assert "R² shuffled message" in report
     out = _run(str(BIN / "udan-export"), ckpt, "-o", str(tmp_path / "policy.onnx"))
     assert out.returncode == 0, out.stdout + out.stderr
+    curves = _run(
+        str(BIN / "udan-eval"),
+        "--curves",
+        str(tmp_path / "udan"),
+        str(tmp_path / "quiet"),
+        "--out",
+        str(tmp_path),
+    )
+    assert curves.returncode == 0 and "| quiet | 640 |" in curves.stdout, curves.stderr
+    assert (tmp_path / "curves.png").stat().st_size > 1000
     quiet = str(tmp_path / "quiet" / "checkpoint.pt")
     for flag in (["--ablate", "messages=zero"], ["--probe"]):
         out = _run(str(BIN / "udan-eval"), quiet, "--agents", "2", "--obstacles", "0", *flag)

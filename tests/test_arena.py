@@ -164,6 +164,7 @@ def test_parallel_env_matches_the_core():
         ({"obstacles": (0, 28)}, "obstacle zone"),
         ({"task": "surround", "agents": (1, 40), "obstacles": (0, 41)}, "exceed the 81 cells"),
         ({"churn": 2.0}, "probability"),
+        ({"agents": 3, "churn": 0.2}, "churn needs a range of agents"),
         ({"task": "fly"}, "unknown arena task"),
     ],
 )
@@ -183,3 +184,57 @@ def test_bad_actions_are_refused():
     env = fresh("find_water", batch=1)
     with pytest.raises(ValueError, match="actions must be in"):
         env.step(np.full((1, 5), 7))
+
+
+@pytest.mark.parametrize(
+    ("actions", "message"),
+    [
+        (np.full((2, 5), 1.0), "must be integers"),
+        (np.full((2, 5), "1"), "must be integers"),
+        (np.full((2, 4), 1), "one per slot"),
+        (np.full((2, 5), 7), "in 0..4"),
+        (np.full((2, 5), -1), "in 0..4"),
+    ],
+)
+def test_loose_actions_are_refused(actions, message):
+    env = fresh("find_water", batch=2, agents=(5, 5))
+    with pytest.raises(ValueError, match=message):
+        env.step(actions)
+
+
+def test_a_step_after_the_episode_ended_is_refused():
+    env = fresh("surround", batch=2, agents=(2, 2))
+    for _ in range(env.config.max_steps):
+        env.step(np.zeros((2, 2), dtype=np.int64))
+    with pytest.raises(ValueError, match="episode over"):
+        env.step(np.zeros((2, 2), dtype=np.int64))
+    env.reset()
+    env.step(np.zeros((2, 2), dtype=np.int64))
+
+
+def test_parallel_view_wants_an_integer_action_from_every_agent_and_none_after_the_end():
+    env = envs.make("arena/find_water", agents=(3, 3), seed=0)
+    env.reset()
+    everyone = dict.fromkeys(env.agents, 4)
+    with pytest.raises(ValueError, match="missing"):
+        env.step(dict(list(everyone.items())[:2]))
+    with pytest.raises(ValueError, match="not in the episode"):
+        env.step({**everyone, "agent_9": 0})
+    with pytest.raises(ValueError, match="an action is an integer"):
+        env.step({**everyone, env.agents[0]: 1.5})
+    for _ in range(env.config.max_steps):
+        env.step(dict.fromkeys(env.agents, 4))
+    with pytest.raises(ValueError, match="episode is over"):
+        env.step(everyone)
+
+
+def test_joiners_find_the_water_the_episode_started_with():
+    env = fresh("find_water", batch=64, agents=(1, 5), churn=0.5)
+    env.reset()
+    sources = (env.layout[:, 0] == WATER).sum(1)
+    counts = env.present.sum(1)
+    assert (sources == counts).all()
+    for _ in range(env.config.max_steps):
+        env.step(np.full((64, 5), 4))
+        assert ((env.layout[:, 0] == WATER).sum(1) == sources).all()
+    assert (env.present.sum(1) != counts).any()  # the fleets did change

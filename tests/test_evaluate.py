@@ -75,7 +75,7 @@ def test_surround_prints_the_target_table_too(capsys):
         (["--env", "magent/tiger"], "arena tasks only"),
         (["/nonexistent/checkpoint.pt"], "does not exist"),
         (["--episodes", "0"], "--episodes"),
-        (["--csv", "/nonexistent/dir/x.csv"], "does not exist"),
+        (["--csv", "/proc/version/x.csv"], "cannot create folder"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(args, message):

@@ -148,6 +148,18 @@ def test_metadata_round_trips_and_is_checked(checkpoints, udan_exported, udan_po
         check_metadata({k: v for k, v in meta.items() if k not in ("algo", "env")})
     with pytest.raises(MetadataError):
         OnnxPolicy(udan_policy, expected=ObsSpec(spec.height + 1, spec.width, spec.view))
+    with pytest.raises(MetadataError, match="trained on arena/find_water, not arena/surround"):
+        OnnxPolicy(udan_policy, env="arena/surround")
+
+
+def test_onnx_policy_says_what_observations_it_expects(udan_policy):
+    policy = OnnxPolicy(udan_policy, env="arena/find_water")
+    n = 3
+    present, pos, fresh = np.ones(n, bool), np.array([[8, 0], [8, 2], [8, 4]]), np.ones(n, bool)
+    policy.act(np.zeros((n, policy.width), np.float32), present, pos, fresh)
+    for obs in (np.zeros((n, policy.width + 3), np.float32), np.zeros(policy.width, np.float32)):
+        with pytest.raises(ValueError, match=rf"expects observations \(N, {policy.width}\)"):
+            policy.act(obs, present, pos, fresh)
 
 
 @pytest.mark.parametrize("algo", ["udan", "vdn"])
@@ -403,7 +415,10 @@ def test_bad_input_is_one_line_and_exit_2(checkpoints, tmp_path):
         "text": ([str(tmp_path / "notes.txt")], "not a"),
         "truncated": ([str(tmp_path / "half.pt")], "not a readable checkpoint"),
         "unknown algo": ([str(tmp_path / "alien.pt")], "unknown algo 'maddpg'"),
-        "missing folder": ([str(good), "-o", str(tmp_path / "no" / "p.onnx")], "does not exist"),
+        "blocked folder": (
+            [str(good), "-o", str(tmp_path / "notes.txt" / "p.onnx")],
+            "cannot create",
+        ),
         "foreign onnx": (
             ["verify", str(tmp_path / "foreign.onnx"), str(good)],
             "metadata missing format, format_version, algo, env, obs_spec",

@@ -130,14 +130,23 @@ def one_line_exit_2(proc, fragment):
         (["--env", "magent/tiger"], "arena tasks"),
         (["--agents", "5-1"], "inverted"),
         (["--algo", "qmix", "--agents", "1-5"], "fixed number"),
-        (["--out", "/nonexistent/dir/run"], "does not exist"),
+        (["--out", "{blocked}/run"], "cannot create folder"),
     ],
 )
 def test_bad_train_input(args, fragment, tmp_path):
+    (tmp_path / "file").write_text("a file where a folder would go")
+    args = [a.format(blocked=tmp_path / "file") for a in args]
     one_line_exit_2(
         run_cli("--steps", "10", *args, *([] if "--out" in args else ["--out", tmp_path / "r"])),
         fragment,
     )
+
+
+def test_out_folders_are_made_as_needed(tmp_path):
+    out = tmp_path / "runs" / "deep" / "fw"
+    small = ["--steps", 200, "--n-envs", 4, "--batch-episodes", 4, "--hidden", 16]
+    assert run_cli(*small, "--out", out).returncode == 0
+    assert (out / "checkpoint.pt").is_file()
 
 
 def test_resume_with_another_config_and_existing_run(tmp_path):
@@ -146,7 +155,7 @@ def test_resume_with_another_config_and_existing_run(tmp_path):
     assert run_cli(*small, "--out", out).returncode == 0
     one_line_exit_2(run_cli(*small, "--out", out), "already holds a run")
     one_line_exit_2(run_cli(*small, "--out", out, "--resume", "--lr", 0.1), "config differs")
-    one_line_exit_2(run_cli(*small, "--out", tmp_path / "none", "--resume"), "does not exist")
+    one_line_exit_2(run_cli(*small, "--out", tmp_path / "none", "--resume"), "no checkpoint.pt")
 
 
 def test_corrupt_truncated_and_foreign_checkpoints(tmp_path):

@@ -18,6 +18,7 @@ import numpy as np
 from udan.ablations import ABLATIONS
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.errors import parse_range
+from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES, Policy
 from udan.probe import format_probe, probe
 
@@ -303,6 +304,49 @@ def _probed_model(args: argparse.Namespace, sources: list):
     return model
 
 
+def learning_curves(runs: list[Path], path: Path | None) -> str:
+    """Each run's training return against environment steps (its ``progress.csv``), plotted to
+    ``path``; returns a markdown table of the last two tenths of each run, to tell whether the
+    curve has levelled off."""
+    curves = {}
+    for run in runs:
+        file = run / "progress.csv"
+        if not file.is_file():
+            raise EnvConfigError(f"--curves: {run} has no progress.csv (not a run folder)")
+        with file.open() as f:
+            rows = [(int(r["steps"]), float(r["return"])) for r in csv.DictReader(f)]
+        if len(rows) < 2:
+            raise EnvConfigError(f"--curves: {run} has only {len(rows)} row(s) of progress")
+        curves[run.name] = np.array(rows)
+    lines = [
+        "| run | steps | return, 8th-9th tenth | return, last tenth | change |",
+        "|---|---|---|---|---|",
+    ]
+    for name, rows in curves.items():
+        tenth = max(len(rows) // 10, 1)
+        before, last = rows[-2 * tenth : -tenth, 1].mean(), rows[-tenth:, 1].mean()
+        lines.append(
+            f"| {name} | {int(rows[-1, 0]):,} | {before:.2f} | {last:.2f} | {last - before:+.2f} |"
+        )
+    if path is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for name, rows in curves.items():
+            ax.plot(rows[:, 0], rows[:, 1], label=name, lw=1)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("training return (mean of the last 200 episodes, with exploration)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+    return "\n".join(lines)
+
+
 def _slug(label: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in label).strip("_")
 
@@ -331,6 +375,14 @@ def main(argv: list[str] | None = None) -> int:
         + "; ".join(f"{name}: {what}" for name, what in ABLATIONS.items()),
     )
     parser.add_argument(
+        "--curves",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="RUN",
+        help="plot these run folders' learning curves (to --out/curves.png) and tabulate their end",
+    )
+    parser.add_argument(
         "--probe",
         action="store_true",
         help="arena/hidden_goal: a linear probe of the goal in the messages (udan.probe)",
@@ -346,8 +398,14 @@ def main(argv: list[str] | None = None) -> int:
         agents = parse_range(args.agents, "--agents")
         obstacles = parse_range(args.obstacles, "--obstacles")
         for folder, what in ((args.csv and args.csv.parent, "--csv"), (args.out, "--out")):
-            if folder is not None and not folder.is_dir():
-                raise EnvConfigError(f"{what}: folder {folder} does not exist")
+            if folder is not None:
+                ensure_folder(folder, what)
+        curves = ""
+        if args.curves:
+            curves = learning_curves(args.curves, args.out and args.out / "curves.png")
+            if not args.checkpoints and not args.policy:
+                print(curves)
+                return 0
         sources = load_sources(args)
         if args.csv is not None and len(sources) > 1:
             raise EnvConfigError("--csv takes one source; use --out for several")
@@ -369,11 +427,11 @@ def main(argv: list[str] | None = None) -> int:
             for mode in args.ablate
         }
         probes = probe(probed, agents, args.episodes, args.seed) if args.probe else []
-    except (EnvConfigError, CheckpointError) as err:
+    except (EnvConfigError, CheckpointError, FolderError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
     env_name = sources[0][1]
-    reports = []  # markdown tables written to --out/report.md
+    reports = [curves] if curves else []  # markdown tables written to --out/report.md
     for label, results in tables.items():
         title = (
             f"{env_name}, {label}: average agent score "

@@ -41,6 +41,7 @@ from udan.learner import (
     merge_rounds,
     neighbour_rows,
 )
+from udan.paths import FolderError, ensure_folder
 
 
 @dataclass
@@ -546,10 +547,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not resume and (Path(cfg.out) / "checkpoint.pt").exists():
             raise CheckpointError(f"{cfg.out} already holds a run; use --resume or another --out")
-        if not Path(cfg.out).parent.exists():
-            raise CheckpointError(f"--out: folder {Path(cfg.out).parent} does not exist")
+        if resume and not (Path(cfg.out) / "checkpoint.pt").exists():
+            raise CheckpointError(f"--resume: {cfg.out} holds no checkpoint.pt")
+        ensure_folder(cfg.out, "--out")
         path = train(cfg, resume=resume, log=lambda *a, **k: print(*a, **k, flush=True))
-    except (EnvConfigError, CheckpointError) as err:
+    except (EnvConfigError, CheckpointError, FolderError) as err:
         print(f"udan-train: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

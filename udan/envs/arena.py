@@ -13,8 +13,11 @@ Two tasks on a 9x9 grid, five actions (:mod:`udan.envs.rules`), 50 steps, view r
   step. The target's own score drops by 1 for every step some agent is next to it.
 
 The number of agents and obstacles is drawn per episode; with ``churn`` > 0 an agent may also
-join or leave during an episode. Arenas are padded to ``agents[1]`` slots; ``present`` says
-which slots hold an agent and ``agent_id`` gives each a stable id within its episode.
+join or leave during an episode (within ``agents``, so churn needs a range). The world is
+physical: an agent that joins find_water mid-episode finds the water sources the episode started
+with (one per agent at the start), not a new one of its own. Arenas are padded to ``agents[1]``
+slots; ``present`` says which slots hold an agent and ``agent_id`` gives each a stable id within
+its episode.
 """
 
 from __future__ import annotations
@@ -33,7 +36,16 @@ from udan.envs.observe import (
     observe,
     pad_layout,
 )
-from udan.envs.rules import ACTION_DELTAS, FREE, N_ACTIONS, OBSTACLE, WALL, WATER, resolve_moves
+from udan.envs.rules import (
+    ACTION_DELTAS,
+    FREE,
+    N_ACTIONS,
+    OBSTACLE,
+    WALL,
+    WATER,
+    checked_actions,
+    resolve_moves,
+)
 
 TASKS = ("find_water", "surround")
 # Cell code -> observation bits of the static layout.
@@ -79,6 +91,10 @@ class ArenaConfig:
             raise EnvConfigError("max_steps must be >= 1 and view radii >= 0")
         if not 0.0 <= self.churn <= 1.0:
             raise EnvConfigError(f"churn {self.churn} is not a probability")
+        if self.churn > 0 and self.agents[0] == self.agents[1]:
+            raise EnvConfigError(
+                f"churn needs a range of agents to move in; agents is fixed at {self.agents[0]}"
+            )
         agents_hi, obstacles_hi = self.agents[1], self.obstacles[1]
         if self.task == "find_water":
             if self.height < 4:
@@ -275,17 +291,16 @@ class ArenaBatch:
 
     # ------------------------------------------------------------------ stepping
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Apply one action per slot (ignored for absent slots).
+        """Apply one integer action per slot (ignored for absent slots); a step past an
+        episode's end is an error.
 
         Returns (observations (B, N, D), rewards (B, N), done (B,)). Episodes are not reset
         automatically; call :meth:`reset` with ``done``.
         """
-        actions = np.asarray(actions, dtype=np.int64).reshape(self.batch, self.slots)
-        actions = np.where(self.present, actions, 0)
-        if actions.min() < 0 or actions.max() >= N_ACTIONS:
-            raise ValueError(
-                f"actions must be in [0, {N_ACTIONS}), got {actions.min()}..{actions.max()}"
-            )
+        ended = self.t >= self.config.max_steps
+        if ended.any():
+            raise ValueError(f"episode over in arena {np.flatnonzero(ended)[0]}: reset it first")
+        actions = checked_actions(actions, self.batch, self.slots, self.present)
         passable = self.layout == FREE
         if self.config.task == "surround":
             # the target is one more mover under the same rules, deciding from positions at t

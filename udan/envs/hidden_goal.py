@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from udan.envs.errors import EnvConfigError, parse_range
-from udan.envs.rules import ACTION_DELTAS, N_ACTIONS, WAIT
+from udan.envs.rules import ACTION_DELTAS, N_ACTIONS, checked_actions
 
 SPEC_NAME = "hidden_goal"
 #: Bumped whenever this task's observation layout or meaning changes.
@@ -170,12 +170,10 @@ class HiddenGoalBatch:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply one action per slot; returns (observations, team rewards (B, N), done (B,))."""
-        actions = np.asarray(actions, dtype=np.int64).reshape(self.batch, self.slots)
-        actions = np.where(self.present, actions, WAIT)
-        if actions.min() < 0 or actions.max() >= N_ACTIONS:
-            raise ValueError(
-                f"actions must be in [0, {N_ACTIONS}), got {actions.min()}..{actions.max()}"
-            )
+        ended = self.t >= self.config.max_steps
+        if ended.any():
+            raise ValueError(f"episode over in arena {np.flatnonzero(ended)[0]}: reset it first")
+        actions = checked_actions(actions, self.batch, self.slots, self.present)
         moved = self.pos + ACTION_DELTAS[actions]
         inside = ((moved >= 0) & (moved < (self.config.height, self.config.width))).all(-1)
         self.pos = np.where(inside[..., None], moved, self.pos)  # walls alone stop a move

@@ -15,7 +15,7 @@ from pettingzoo import ParallelEnv
 
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.hidden_goal import HiddenGoalBatch, HiddenGoalConfig
-from udan.envs.rules import N_ACTIONS
+from udan.envs.rules import N_ACTIONS, WAIT
 
 
 class ArenaParallelEnv(ParallelEnv):
@@ -70,10 +70,24 @@ class ArenaParallelEnv(ParallelEnv):
 
     def step(self, actions: dict[str, Any]):
         core = self._core
-        act = np.full((1, core.slots), 4, dtype=np.int64)
+        if not self.agents:
+            raise ValueError("the episode is over: call reset() first")
+        missing = [a for a in self.agents if a not in actions]
+        unknown = [a for a in actions if a not in self._slot_of]
+        if missing or unknown:
+            raise ValueError(
+                f"step() needs one action for each of {self.agents}"
+                + (f"; missing {missing}" if missing else "")
+                + (f"; not in the episode: {unknown}" if unknown else "")
+            )
+        act = np.full((1, core.slots), WAIT, dtype=np.int64)
         for agent, action in actions.items():
-            if agent in self._slot_of:
-                act[0, self._slot_of[agent]] = int(action)
+            value = np.asarray(action)
+            if value.shape != () or value.dtype.kind not in "iu":
+                raise ValueError(
+                    f"{agent}: an action is an integer 0..{N_ACTIONS - 1}, got {action!r}"
+                )
+            act[0, self._slot_of[agent]] = value
         before = dict(self._slot_of)
         obs, reward, done = core.step(act)
         self.agents = [] if done[0] else self._names()

@@ -25,6 +25,22 @@ ACTION_DELTAS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]], dtype=np.in
 FREE, WALL, OBSTACLE, WATER = 0, 1, 2, 3
 
 
+def checked_actions(actions, batch: int, slots: int, present: np.ndarray) -> np.ndarray:
+    """``actions`` as int64 (B, N), or ValueError naming what was expected: integers (a float or
+    a string is never rounded or parsed), one per slot, each in 0..4 for present agents (absent
+    slots' values are ignored and read as wait)."""
+    arr = np.asarray(actions)
+    if arr.dtype.kind not in "iu":
+        raise ValueError(f"actions must be integers 0..{N_ACTIONS - 1}, got dtype {arr.dtype}")
+    if arr.size != batch * slots:
+        raise ValueError(f"expected {batch}x{slots} actions (one per slot), got shape {arr.shape}")
+    arr = np.where(present, arr.reshape(batch, slots).astype(np.int64), WAIT)
+    if arr.min() < 0 or arr.max() >= N_ACTIONS:
+        bad = arr[(arr < 0) | (arr >= N_ACTIONS)][0]
+        raise ValueError(f"actions must be in 0..{N_ACTIONS - 1} ({', '.join(ACTIONS)}), got {bad}")
+    return arr
+
+
 def in_bounds(pos: np.ndarray, height: int, width: int) -> np.ndarray:
     """True where ``pos[..., :]`` (integer rows and columns) lies inside a ``height`` x
     ``width`` grid. A negative row or column read as unsigned is a huge number, so one
