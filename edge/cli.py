@@ -27,7 +27,6 @@ from typing import Any
 from edge.camera import CameraError, FrameGrabber, open_camera
 from edge.decide import DecisionStep, TaskError, task_of
 from edge.fleet import Fleet
-from edge.fleetfile import FleetFileError, load_fleet, write_fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.pauses import freeze_garbage, run_realtime, scheduler
@@ -37,6 +36,7 @@ from edge.transport import TransportError, free_udp_port, host_port, open_transp
 from edge.vision import Vision, VisionError
 from export.metadata import MetadataError, obs_spec
 from udan.envs.errors import OneLineParser
+from udan.fleetfile import FleetFileError, load_fleet, write_fleet
 
 PROG = "udan-edge"
 BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"

@@ -28,8 +28,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from edge import protocol as ep
-from edge.fleetfile import CarEntry
 from edge.transport import Transport, TransportError
+from udan.fleetfile import CarEntry
 
 RETRY_NS = 2_000_000  # resend an unacked command after this long (loopback rtt is ~0.3 ms)
 SEND_MARGIN_NS = 1_000_000  # no send this close to the deadline: it would arrive expired
