@@ -20,17 +20,19 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from edge.camera import CameraError, FrameGrabber, open_camera
+from edge.core import ControlCore
 from edge.decide import DecisionStep, TaskError, task_of
 from edge.fleet import Fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.pauses import freeze_garbage, run_realtime, scheduler
-from edge.runtime import LoopConfig, Runtime, WorldError
+from edge.shell import EdgeShell, LoopConfig, WorldError
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
 from edge.vision import Vision, VisionError
@@ -156,7 +158,7 @@ def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
 
 async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
     geometry = ArenaGeometry()
-    _, decide = load_policy(args.model, geometry)
+    _, policy_step = load_policy(args.model, geometry)
     cars = load_fleet(args.fleet)
     transport = open_transport(args.transport, cars, **_transport_options(args))
     vision = Vision(
@@ -172,11 +174,12 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         episode_steps=args.episode_steps,
     )
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    runtime = Runtime(grabber, vision, link, decide, fleet, telemetry, config, world=world)
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
+    shell = EdgeShell(grabber, vision, link, core, telemetry, config, world=world)
     freeze_garbage()
     await link.start()
     try:
-        return await runtime.run()
+        return await shell.run()
     finally:
         await link.close()
         telemetry.close()

@@ -1,13 +1,13 @@
-"""The edge runtime's main loop: frames -> cells -> decision -> dispatch, for hours.
+"""The asyncio shell around the control core (:mod:`edge.core`): frames in, commands out.
 
-One asyncio loop. Capture runs in its own thread (:class:`edge.camera.FrameGrabber`, newest
-frame wins) and vision in a worker thread (OpenCV releases the GIL), so the dispatcher's
-retransmission timers keep running while a frame is analysed.
+The shell does the I/O and the timing tricks (rehearsal while a frame is analysed, garbage
+collection between steps); the core decides what happens. One asyncio loop. Capture runs in its
+own thread (:class:`edge.camera.FrameGrabber`, newest frame wins) and vision in a worker thread
+(OpenCV releases the GIL), so the dispatcher's retransmission timers keep running while a frame
+is analysed.
 
-A decision step happens on the first frame captured after every car of the fleet reported its
-move finished (so the camera shows where the moves ended), or when the step period runs out
-(cars still in a move then get ``wait`` and their destinations are held). All commands of a step
-leave at once, each valid until the decision + 10 ms.
+When a decision step happens is the core's rule (:class:`edge.core.ControlCore`). All commands
+of a step leave at once, each valid until the decision + 10 ms.
 
 Episodes (HIL and ``--sim``): with a world control address the runtime asks the world for each
 episode's layout, waits until the episode's cars are in the fleet and the vision has swept the
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.camera import Frame, FrameGrabber, yield_to_dispatch
-from edge.decide import DecisionStep
-from edge.fleet import Fleet
-from edge.link import CarLink, CommandReport
+from edge.core import ControlCore, StepTiming
+from edge.fleet import FleetState
+from edge.link import CarLink
 from edge.pauses import collect_between_steps
 from edge.telemetry import Telemetry
 from edge.vision import Scene, Vision
@@ -42,17 +42,6 @@ from edge.vision import Scene, Vision
 ESTOP_GRACE_S = 0.05
 #: With no step for this long, collect anyway.
 COLLECT_IDLE_NS = 1_000_000_000
-#: Rehearse only when the last decision took less than this. A rehearsal runs while the frame
-#: is analysed but can hold up its scene by its own length; a decision this long is arithmetic
-#: on a large fleet (1,000 agents: ~5 ms warm), not cold caches, and gains little from it.
-REHEARSE_UNDER_NS = 3_000_000
-
-
-def _outcome(command: CommandReport) -> str:
-    """on_time (the car accepted it in time), missed, or not_ready (nothing was sent)."""
-    if command.acked:
-        return "on_time"
-    return "not_ready" if command.result == "not_ready" else "missed"
 
 
 class WorldError(RuntimeError):
@@ -79,8 +68,9 @@ class LoopConfig:
     """Longest a step waits for a car the camera missed (then it is stopped for the step)."""
 
     @property
-    def unseen_grace_ns(self) -> int:
-        return int(self.unseen_grace_s * 1e9)
+    def step_timing(self) -> StepTiming:
+        """The core's part of it."""
+        return StepTiming(int(self.step_timeout_s * 1e9), int(self.unseen_grace_s * 1e9))
 
 
 async def world_request(
@@ -109,16 +99,16 @@ async def world_request(
     return reply
 
 
-class Runtime:
-    """Wires camera, vision, fleet, decision, link and telemetry; ``run`` is the whole job."""
+class EdgeShell:
+    """Wires camera, vision, link and telemetry around a :class:`ControlCore`; ``run`` is the
+    whole job."""
 
     def __init__(
         self,
         grabber: FrameGrabber,
         vision: Vision,
         link: CarLink,
-        decide: DecisionStep,
-        fleet: Fleet,
+        core: ControlCore,
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
         world: tuple[str, int] | None = None,
@@ -126,22 +116,14 @@ class Runtime:
         self.grabber = grabber
         self.vision = vision
         self.link = link
-        self.decide = decide
-        self.fleet = fleet
+        self.core = core
         self.telemetry = telemetry
         self.config = config
         self.world = world
         self.stop = asyncio.Event()
-        self.last_cell: dict[int, tuple[int, int]] = {}
-        self._static: dict[str, frozenset[tuple[int, int]]] | None = None  # the last scene's
-        self.last_command: dict[int, int] = {}
-        self._car_of_marker = {m: c for c, m in fleet.markers.items()}
         self._vision_pool = ThreadPoolExecutor(
             1, thread_name_prefix="vision", initializer=yield_to_dispatch
         )
-        self._not_before_ns = 0
-        self._rehearsed = False  # the last step was rehearsed since the last decision
-        self._last_decision_ns = 0  # how long the last decision took (state to commands)
         self._collections = 0
         self._longest_collection_ns = 0
         self._collected_ns = time.monotonic_ns()
@@ -166,6 +148,7 @@ class Runtime:
                 await self._episodes()
         finally:
             gc.enable()
+            self.core.emergency_stop()
             sent = self.link.estop_all()
             self.telemetry.event("estop", cars=sent)
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -185,18 +168,17 @@ class Runtime:
 
     # ------------------------------------------------------------------ frames
     async def _next_scene(self) -> Scene | None:
-        """The next frame's scene (captured after ``_not_before_ns``), with the fleet updated;
+        """The next frame's scene (one the core does not find stale), with the fleet updated;
         None on a stall, the end of the stream, or a stop."""
         while not self.stop.is_set():
             frame = await self._wait_frame()
             if frame is None:
                 return None
-            if frame.t_capture_ns < self._not_before_ns:
+            if not self.core.wants(frame.t_capture_ns):
                 continue
             loop = asyncio.get_running_loop()
             analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
-            if self._worth_rehearsing() and self._rehearse():
-                self._rehearsed = True  # this frame may be the deciding one: caches warmed
+            self.core.warm_up(self.link.move_finished)  # this frame may be the deciding one
             scene = await analysed
             now = time.monotonic_ns()
             self._fold(scene, frame, now)
@@ -219,53 +201,14 @@ class Runtime:
         return frame
 
     def _fold(self, scene: Scene, frame: Frame, now: int) -> None:
-        """A scene into the fleet and the last known cells; telemetry of the frame."""
-        self._static = scene.cells
-        for marker, sighting in scene.cars.items():
-            car = self._car_of_marker.get(marker)
-            if car is not None and sighting.inside:
-                self.last_cell[car] = sighting.cell
-        seen = [m for m, s in scene.cars.items() if s.inside]
-        change = self.fleet.update(seen, self.link.ready_cars(), now)
+        """A scene into the core; telemetry of the frame and of the fleet's changes."""
+        change = self.core.see(scene, self.link.ready_cars(), now)
         for car in change.joined:
             self.telemetry.event("fleet_join", car=car)
         for car in change.left:
             self.telemetry.event("fleet_leave", car=car)
-            self.last_command.pop(car, None)
-        self.telemetry.frame(frame.index, frame.t_capture_ns, now, len(seen), self.grabber.dropped)
-
-    def _worth_rehearsing(self) -> bool:
-        """Every car of the fleet finished its move (the next frame taken decides), and the
-        last decision was short enough to rehearse."""
-        return (
-            self._last_decision_ns < REHEARSE_UNDER_NS
-            and bool(self.fleet.slot)
-            and all(map(self.link.move_finished, self.fleet.slot))
-        )
-
-    def _rehearse(self) -> bool:
-        """The last step once more; before an episode's first step, the step its fleet would
-        make from the cells and markers seen last (that first step is otherwise the coldest:
-        1.2 ms median in the full loop, against 0.6 ms for a rehearsed one)."""
-        if self.decide.rehearse():
-            return True
-        slots = dict(self.fleet.slot)
-        if self._static is None or not all(car in self.last_cell for car in slots):
-            return False
-        cells = {car: self.last_cell[car] for car in slots}
-        return self.decide.rehearse(slots, cells, self._static)
-
-    def _all_seen(self, scene: Scene) -> bool:
-        """Every car of the fleet is on the grid in this frame."""
-        return all(
-            (s := scene.cars.get(self.fleet.markers[c])) is not None and s.inside
-            for c in self.fleet.slot
-        )
-
-    def _others(self, scene: Scene) -> list[tuple[int, int]]:
-        """Cells of markers on the grid that are not cars of the fleet: they block moves."""
-        driven = {self.fleet.markers[c] for c in self.fleet.slot}
-        return [s.cell for m, s in scene.cars.items() if s.inside and m not in driven]
+        seen = sum(s.inside for s in scene.cars.values())
+        self.telemetry.frame(frame.index, frame.t_capture_ns, now, seen, self.grabber.dropped)
 
     # ------------------------------------------------------------------ steps
     def _collect(self) -> None:
@@ -281,94 +224,29 @@ class Runtime:
 
     async def _drive(self, max_steps: int | None) -> int:
         """Decide and dispatch step after step; returns the number of steps made."""
-        steps = 0
-        finished_at: int | None = None
-        last_decision = time.monotonic_ns()
+        core, steps = self.core, 0
+        core.wait_for_moves(time.monotonic_ns())
         while not self.stop.is_set() and (max_steps is None or steps < max_steps):
             scene = await self._next_scene()
             if time.monotonic_ns() - self._collected_ns > COLLECT_IDLE_NS:
                 self._collect()  # no step for a while (a stall, an empty arena)
-            if scene is None or not self.fleet.slot:
+            if scene is None:
                 continue
             now = time.monotonic_ns()
-            moving = {
-                c: self.last_command[c]
-                for c in self.fleet.slot
-                if c in self.last_command and not self.link.move_finished(c)
-            }
-            if not moving and finished_at is None:
-                finished_at = now
-            fresh_view = finished_at is not None and scene.t_capture_ns >= finished_at
-            # a car the camera missed in this frame would be judged on a stale cell (and stopped
-            # for the step): wait a few frames for it, not longer (it may have left the arena)
-            waited = finished_at is not None and now - finished_at > self.config.unseen_grace_ns
-            fresh_view = fresh_view and (self._all_seen(scene) or waited)
-            timed_out = now - last_decision > self.config.step_timeout_s * 1e9
-            if not (fresh_view or timed_out):
+            state = core.due(scene, self.link.move_finished, now)
+            if state is None:
                 continue
-            await self._step(scene, moving, now)
+            await self._step(state, now)
             self._collect()
             steps += 1
-            finished_at = None
-            last_decision = time.monotonic_ns()
+            core.wait_for_moves(time.monotonic_ns())
         return steps
 
-    async def _step(self, scene: Scene, moving: Mapping[int, int], state_ns: int) -> None:
+    async def _step(self, state: FleetState, state_ns: int) -> None:
         """One decision and its dispatch, with the step's telemetry."""
-        slots = dict(self.fleet.slot)
-        cells = {c: self.last_cell[c] for c in slots}
-        fresh = set(self.fleet.fresh)
-        decision = self.decide.decide(slots, fresh, cells, scene.cells, self._others(scene), moving)
-        self.fleet.stepped()
-        decided_ns = time.monotonic_ns()
-        rehearsed, self._rehearsed = self._rehearsed, False
-        self._last_decision_ns = decided_ns - state_ns
-        commands = {c: int(a) for c, a in zip(decision.cars, decision.commands, strict=True)}
+        decision, commands, decided_ns = self.core.decide(state, state_ns)
         report = await self.link.dispatch(commands, decided_ns)
-        self.last_command.update(commands)
-        received = [r.car_received_ns for r in report.cars.values() if r.acked]
-        # an audit of the car: a command it executed (ACCEPTED, not a duplicate's ack, which
-        # carries the copy's later receive time) must have reached it by its deadline, judged
-        # in the car's own clock (the edge-clock estimate is only good to half a round trip)
-        late = sum(
-            r.car_rx_us > r.car_deadline_us
-            for r in report.cars.values()
-            if r.acked and r.result == "accepted"
-        )
-        acked = [r.acked_ns for r in report.cars.values() if r.acked]
-        self.telemetry.step(
-            {
-                "t_ns": decided_ns,
-                "step": self.decide.t,
-                "cars": len(slots),
-                "fresh": sorted(fresh),  # new to the policy: their memory starts empty
-                "frame": scene.frame_index,
-                "state_to_commands_ns": decided_ns - state_ns,
-                "commands_to_received_ns": max(received) - decided_ns
-                if len(received) == len(commands)
-                else None,
-                "frame_to_received_ns": max(received) - scene.t_capture_ns
-                if len(received) == len(commands)
-                else None,
-                "decision_to_acked_ns": max(acked) - decided_ns
-                if len(acked) == len(commands)
-                else None,
-                "on_time": report.on_time,
-                "retried": report.retried,
-                "missed": report.missed,
-                "not_ready": report.not_ready,
-                "slow_sends": report.slow_sends,
-                "late_sends": report.late_sends,
-                "late_executions": late,
-                "blocked": decision.blocked,
-                "stopped": decision.stopped,
-                "spans_ns": decision.spans_ns,
-                "formed": decision.formed,
-                "rehearsed": rehearsed,
-                "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
-                "commands": {str(c): a for c, a in commands.items()},
-            }
-        )
+        self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
 
     # ------------------------------------------------------------------ episodes
     async def _episodes(self) -> None:
@@ -381,11 +259,7 @@ class Runtime:
             info = await world_request(self.world, {"op": "episode", "index": index})
             if info.get("done"):
                 break
-            self.decide.reset()
-            self._rehearsed = False
-            self.fleet.reset()
-            self.last_command.clear()
-            self._not_before_ns = time.monotonic_ns()
+            self.core.new_episode(time.monotonic_ns())
             cars = set(info["cars"])
             if not await self._await_fleet(cars):
                 self.telemetry.event("episode_skipped", index=index, cars=sorted(cars))
@@ -395,8 +269,8 @@ class Runtime:
             if steps < self.config.episode_steps:  # stopped mid-episode: not a result
                 self.telemetry.event("episode_cut", index=index, steps=steps)
                 break
-            await self._settle_last_step()
-            returns = {str(c): r for c, r in sorted(self.decide.returns.items())}
+            await self._credit_last_step()
+            returns = {str(c): r for c, r in sorted(self.core.policy_step.returns.items())}
             self.telemetry.episode(
                 {
                     "index": index,
@@ -416,24 +290,21 @@ class Runtime:
         frames = 0
         while not self.stop.is_set() and time.monotonic() < deadline:
             frames += await self._next_scene() is not None
-            if set(self.fleet.slot) == cars and frames > self.vision.sweep_frames:
+            if set(self.core.fleet.slot) == cars and frames > self.vision.sweep_frames:
                 return True
         return False
 
-    async def _settle_last_step(self) -> None:
+    async def _credit_last_step(self) -> None:
         """Wait for the last moves to end, then credit their rewards from a fresh frame that
         shows every car."""
         deadline = time.monotonic_ns() + int(self.config.step_timeout_s * 1e9)
         while not self.stop.is_set() and time.monotonic_ns() < deadline:
-            if all(self.link.move_finished(c) for c in self.fleet.slot):
+            if all(self.link.move_finished(c) for c in self.core.fleet.slot):
                 break
             await asyncio.sleep(0.002)
-        self._not_before_ns = time.monotonic_ns()
+        self.core.not_before_ns = time.monotonic_ns()
         deadline += int(self.config.step_timeout_s * 1e9)
         while not self.stop.is_set() and time.monotonic_ns() < deadline:
             scene = await self._next_scene()
-            if scene is not None and self._all_seen(scene):
-                slots = dict(self.fleet.slot)
-                cells = {c: self.last_cell[c] for c in slots}
-                self.decide.settle(slots, cells, scene.cells)
+            if scene is not None and self.core.credit_last_step(scene) is not None:
                 return
