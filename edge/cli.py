@@ -28,11 +28,12 @@ from typing import Any
 from edge.camera import CameraError, FrameGrabber, open_camera
 from edge.core import ControlCore
 from edge.decide import DecisionStep, TaskError, task_of
+from edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from edge.fleet import Fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.pauses import freeze_garbage, run_realtime, scheduler
-from edge.shell import EdgeShell, LoopConfig, WorldError
+from edge.shell import EdgeShell, LoopConfig
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
 from edge.vision import Vision, VisionError
@@ -167,19 +168,17 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     grabber = FrameGrabber(open_camera(args.camera))
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
-    config = LoopConfig(
-        step_timeout_s=args.step_timeout,
-        duration_s=args.duration,
-        episodes=args.episodes,
-        episode_steps=args.episode_steps,
-    )
+    config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
     core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
-    shell = EdgeShell(grabber, vision, link, core, telemetry, config, world=world)
+    shell = EdgeShell(grabber, vision, link, core, telemetry, config)
+    play = None
+    if world is not None:
+        play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
     freeze_garbage()
     await link.start()
     try:
-        return await shell.run()
+        return await shell.run(play)
     finally:
         await link.close()
         telemetry.close()

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from edge import protocol as ep
-from edge.shell import world_request
+from edge.episodes import world_request
 from edge.transport import free_udp_port
 from export.runtime import OnnxPolicy
 from hil.faults import FaultPlan, FaultSpecError, parse_faults
