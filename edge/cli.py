@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from edge.calibration import VisionError
 from edge.camera import CameraError, FrameGrabber, open_camera
 from edge.core import ControlCore
 from edge.decide import DecisionStep, TaskError, task_of
@@ -36,7 +37,7 @@ from edge.pauses import freeze_garbage, run_realtime, scheduler
 from edge.shell import EdgeShell, LoopConfig
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
-from edge.vision import Vision, VisionError
+from edge.vision import Vision
 from export.metadata import MetadataError, obs_spec
 from udan.envs.errors import OneLineParser
 from udan.fleetfile import FleetFileError, load_fleet, write_fleet
