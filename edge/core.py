@@ -19,14 +19,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from edge.decide import Decision, DecisionStep
 from edge.fleet import Cell, Change, Fleet, FleetState
-from edge.link import CommandReport, DispatchReport
-from edge.vision import Scene
+
+if TYPE_CHECKING:  # data the core reads; it runs neither the link nor the vision
+    from edge.link import CommandReport, DispatchReport
+    from edge.vision import Scene
 
 #: Rehearse only when the last decision took less than this. A rehearsal runs while the frame
 #: is analysed but can hold up its scene by its own length; a decision this long is arithmetic
