@@ -21,6 +21,7 @@ from udan.envs.rules import WAIT
 MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
 MS = 1_000_000
 MARKERS = {1: 11, 2: 12, 3: 13}
+MARKER_CAR = {m: c for c, m in MARKERS.items()}
 STATIC = {
     "obstacle": frozenset({(4, 2)}),
     "wall": frozenset(),
@@ -111,10 +112,37 @@ def busy(_car: int) -> bool:
     return False
 
 
+TWO = {11: (8, 1), 12: (8, 5)}  # cars 1 and 2, by marker
+
+
+def see(
+    core: ControlCore,
+    clock: Clock,
+    at_ms: int,
+    cells: Mapping[int, tuple[int, int]],
+    ready: set[int],
+    captured_ms: int | None = None,
+) -> Scene:
+    """At ``at_ms``, the scene of a frame captured at ``captured_ms`` (default: then) folded
+    into the core with the link's ``ready`` cars."""
+    clock.ns = at_ms * MS
+    frame = scene((at_ms if captured_ms is None else captured_ms) * MS, cells)
+    core.see(frame, ready=ready, now=clock.ns)
+    return frame
+
+
+def first_step(
+    core: ControlCore, clock: Clock, cells: Mapping = TWO, missed: Iterable[int] = ()
+) -> dict:
+    """Every car of ``cells`` joined and seen at 0 ms, and the first step dispatched."""
+    frame = see(core, clock, 0, cells, ready={MARKER_CAR[m] for m in cells})
+    return step(core, clock, core.due(frame, done, clock.ns), missed)
+
+
 def test_a_car_that_joins_and_is_seen_is_decided_for_as_new(
     core: ControlCore, clock: Clock
 ) -> None:
-    frame = scene(0, {11: (8, 1), 12: (8, 5)})
+    frame = scene(0, TWO)
     change = core.see(frame, ready={1}, now=0)
     assert change.joined == [1]  # car 2 is seen but has not joined over the link
     state = core.due(frame, done, 0)
@@ -124,10 +152,9 @@ def test_a_car_that_joins_and_is_seen_is_decided_for_as_new(
     assert record["fresh"] == [1] and record["cars"] == 1 and set(record["commands"]) == {"1"}
     assert record["outcomes"] == {"1": "on_time"}
     # car 2 joins: it takes the next slot with fresh memory, car 1 is no longer new
-    clock.ns = 300 * MS
-    frame = scene(clock.ns, {11: (8, 1), 12: (8, 5)})
-    assert core.see(frame, ready={1, 2}, now=clock.ns).joined == [2]
-    state = core.due(frame, done, clock.ns)
+    frame = scene(300 * MS, TWO)
+    assert core.see(frame, ready={1, 2}, now=300 * MS).joined == [2]
+    state = core.due(frame, done, 300 * MS)
     assert state is not None and state.slots == {1: 0, 2: 1} and state.fresh == {2}
     assert step(core, clock, state)["fresh"] == [2]
 
@@ -135,15 +162,12 @@ def test_a_car_that_joins_and_is_seen_is_decided_for_as_new(
 def test_a_car_the_link_drops_leaves_and_its_last_command_is_forgotten(
     core: ControlCore, clock: Clock
 ) -> None:
-    frame = scene(0, {11: (8, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=0)
-    step(core, clock, core.due(frame, done, 0))
+    first_step(core, clock)
     assert set(core.fleet.command) == {1, 2}
-    clock.ns = 300 * MS
-    frame = scene(clock.ns, {11: (8, 1), 12: (8, 5)})
-    change = core.see(frame, ready={1}, now=clock.ns)  # LEAVE, reboot or silence
+    frame = scene(300 * MS, TWO)
+    change = core.see(frame, ready={1}, now=300 * MS)  # LEAVE, reboot or silence
     assert change.left == [2] and set(core.fleet.command) == {1}
-    state = core.due(frame, done, clock.ns)
+    state = core.due(frame, done, 300 * MS)
     assert state.slots == {1: 0} and state.others == [(8, 5)]  # now a thing the edge does not drive
     assert set(step(core, clock, state)["commands"]) == {"1"}
 
@@ -151,20 +175,12 @@ def test_a_car_the_link_drops_leaves_and_its_last_command_is_forgotten(
 def test_a_car_the_camera_misses_is_waited_for_then_judged_on_its_last_cell_then_lost(
     core: ControlCore, clock: Clock
 ) -> None:
-    frame = scene(0, {11: (8, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=0)
-    step(core, clock, core.due(frame, done, 0))
-    clock.ns = 200 * MS
-    missing = scene(clock.ns, {11: (7, 1)})
-    core.see(missing, ready={1, 2}, now=clock.ns)
+    first_step(core, clock)
+    missing = see(core, clock, 200, {11: (7, 1)}, ready={1, 2})
     assert core.due(missing, done, clock.ns) is None  # moves finished now: wait for car 2
-    clock.ns += 50 * MS
-    missing = scene(clock.ns, {11: (7, 1)})
-    core.see(missing, ready={1, 2}, now=clock.ns)
+    missing = see(core, clock, 250, {11: (7, 1)}, ready={1, 2})
     assert core.due(missing, done, clock.ns) is None  # within the grace
-    clock.ns += 60 * MS
-    missing = scene(clock.ns, {11: (7, 1)})
-    core.see(missing, ready={1, 2}, now=clock.ns)
+    missing = see(core, clock, 310, {11: (7, 1)}, ready={1, 2})
     state = core.due(missing, done, clock.ns)  # grace over: decided on its last cell
     assert state is not None and state.cells == {1: (7, 1), 2: (8, 5)}
     step(core, clock, state)
@@ -174,17 +190,11 @@ def test_a_car_the_camera_misses_is_waited_for_then_judged_on_its_last_cell_then
 
 
 def test_stale_frames_decide_nothing(core: ControlCore, clock: Clock) -> None:
-    frame = scene(0, {11: (8, 1)})
-    core.see(frame, ready={1}, now=0)
-    step(core, clock, core.due(frame, done, 0))
+    first_step(core, clock, {11: (8, 1)})
     # the moves end at 200 ms; a frame captured before that still shows them under way
-    clock.ns = 200 * MS
-    early = scene(190 * MS, {11: (8, 1)})
-    core.see(early, ready={1}, now=clock.ns)
+    early = see(core, clock, 200, {11: (8, 1)}, ready={1}, captured_ms=190)
     assert core.due(early, done, clock.ns) is None
-    later = scene(210 * MS, {11: (7, 1)})
-    clock.ns = 215 * MS
-    core.see(later, ready={1}, now=clock.ns)
+    later = see(core, clock, 215, {11: (7, 1)}, ready={1}, captured_ms=210)
     assert core.due(later, done, clock.ns).cells == {1: (7, 1)}
     # a new episode: frames captured before it are not even analysed
     core.new_episode(300 * MS)
@@ -195,9 +205,7 @@ def test_stale_frames_decide_nothing(core: ControlCore, clock: Clock) -> None:
 def test_when_the_step_period_runs_out_moving_cars_wait_and_missed_commands_are_reported(
     core: ControlCore, clock: Clock
 ) -> None:
-    frame = scene(0, {11: (8, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=0)
-    first = step(core, clock, core.due(frame, done, 0), missed={2})
+    first = first_step(core, clock, missed={2})
     assert first["outcomes"] == {"1": "on_time", "2": "missed"} and first["missed"] == 1
     assert first["commands_to_received_ns"] is None  # not every car received its command
     assert first["state_to_commands_ns"] == MS
@@ -206,13 +214,9 @@ def test_when_the_step_period_runs_out_moving_cars_wait_and_missed_commands_are_
     def only_2_done(car: int) -> bool:
         return car == 2
 
-    clock.ns = 500 * MS
-    frame = scene(clock.ns, {11: (8, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=clock.ns)
+    frame = see(core, clock, 500, TWO, ready={1, 2})
     assert core.due(frame, only_2_done, clock.ns) is None  # car 1 is still in its move
-    clock.ns = 1010 * MS  # the step period ran out
-    frame = scene(clock.ns, {11: (8, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=clock.ns)
+    frame = see(core, clock, 1010, TWO, ready={1, 2})  # the step period ran out
     state = core.due(frame, only_2_done, clock.ns)
     assert state is not None and dict(state.moving) == {1: car1_doing}
     record = step(core, clock, state)
@@ -224,8 +228,7 @@ def test_the_safety_filter_vetoes_a_move_into_a_cell_something_else_holds(
 ) -> None:
     # car 1 stands in the bottom-left corner, things the edge does not drive on both its
     # neighbours: the policy (which does not see them) moves, the filter says no
-    frame = scene(0, {11: (8, 0), 20: (7, 0), 21: (8, 1)})
-    core.see(frame, ready={1}, now=0)
+    frame = see(core, clock, 0, {11: (8, 0), 20: (7, 0), 21: (8, 1)}, ready={1})
     state = core.due(frame, done, 0)
     assert sorted(state.others) == [(7, 0), (8, 1)]
     decision, commands, _ = core.decide(state, 0)
@@ -234,13 +237,10 @@ def test_the_safety_filter_vetoes_a_move_into_a_cell_something_else_holds(
 
 
 def test_an_emergency_stop_ends_the_steps(core: ControlCore, clock: Clock) -> None:
-    frame = scene(0, {11: (8, 1)})
-    core.see(frame, ready={1}, now=0)
+    frame = see(core, clock, 0, {11: (8, 1)}, ready={1})
     assert core.due(frame, done, 0) is not None
     core.emergency_stop()
-    clock.ns = 5000 * MS
-    frame = scene(clock.ns, {11: (8, 1)})
-    core.see(frame, ready={1}, now=clock.ns)
+    frame = see(core, clock, 5000, {11: (8, 1)}, ready={1})
     assert core.due(frame, done, clock.ns) is None
     assert core.due(frame, busy, clock.ns) is None  # not even when the period ran out
 
@@ -248,9 +248,7 @@ def test_an_emergency_stop_ends_the_steps(core: ControlCore, clock: Clock) -> No
 def test_the_last_step_is_credited_only_from_a_frame_that_shows_every_car(
     core: ControlCore, clock: Clock
 ) -> None:
-    frame = scene(0, {11: (1, 1), 12: (8, 5)})
-    core.see(frame, ready={1, 2}, now=0)
-    step(core, clock, core.due(frame, done, 0))
+    first_step(core, clock, {11: (1, 1), 12: (8, 5)})
     assert core.credit_last_step(scene(clock.ns, {11: (0, 1)})) is None
     rewards = core.credit_last_step(scene(clock.ns, {11: (1, 1), 12: (8, 5)}))
     assert rewards.tolist() == [1.0, 0.0]  # car 1 ended in front of a water source
