@@ -4,7 +4,7 @@ Sans-I/O, in the manner of aioquic: no socket, no sleep, no thread and no global
 caller (the asyncio shell, :mod:`edge.shell`, or a test) feeds each analysed frame
 (:meth:`ControlCore.see`) with the cars the link has ready and the time, asks whether a step is
 due (:meth:`ControlCore.due`, with the link's "has this car finished its move"), has it decided
-(:meth:`ControlCore.decide`), sends the commands itself, and hands back what became of them
+(:meth:`ControlCore.commands_for`), sends the commands itself, and hands back what became of them
 (:meth:`ControlCore.dispatched`), which gives the step's telemetry record. The only clock the
 core reads is the one it is given, for the decision's timestamp.
 
@@ -152,7 +152,7 @@ class ControlCore:
             scene.cells, self._others(scene), moving, scene.frame_index, scene.t_capture_ns
         )
 
-    def decide(self, state: FleetState, now: int) -> tuple[Decision, dict[int, int], int]:
+    def commands_for(self, state: FleetState, now: int) -> tuple[Decision, dict[int, int], int]:
         """The step's decision, each car's command, and the decision's time (the commands'
         validity counts from it); ``now`` is when the state was taken."""
         decision = self.policy_step.decide(state)

@@ -201,6 +201,6 @@ class EdgeShell:
 
     async def _step(self, state: FleetState, state_ns: int) -> None:
         """One decision and its dispatch, with the step's telemetry."""
-        decision, commands, decided_ns = self.core.decide(state, state_ns)
+        decision, commands, decided_ns = self.core.commands_for(state, state_ns)
         report = await self.link.dispatch(commands, decided_ns)
         self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))

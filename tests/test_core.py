@@ -94,7 +94,7 @@ def step(core: ControlCore, clock: Clock, state: FleetState, missed: Iterable[in
     """Decide on ``state`` now, dispatch as the link would, and start waiting for the moves."""
     state_ns = clock.ns
     clock.ns += MS  # the decision takes a millisecond
-    decision, commands, decided_ns = core.decide(state, state_ns)
+    decision, commands, decided_ns = core.commands_for(state, state_ns)
     assert decided_ns == clock.ns
     record = core.dispatched(
         state, decision, commands, all_acked(commands, decided_ns, missed), state_ns
@@ -231,7 +231,7 @@ def test_the_safety_filter_vetoes_a_move_into_a_cell_something_else_holds(
     frame = see(core, clock, 0, {11: (8, 0), 20: (7, 0), 21: (8, 1)}, ready={1})
     state = core.due(frame, done, 0)
     assert sorted(state.others) == [(7, 0), (8, 1)]
-    decision, commands, _ = core.decide(state, 0)
+    decision, commands, _ = core.commands_for(state, 0)
     assert decision.actions[0] != WAIT  # the policy wanted a move ...
     assert commands == {1: WAIT} and decision.blocked == 1  # ... and it was held back
 
