@@ -26,6 +26,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 
 from edge.decide import DecisionStep
+from edge.fleet import FleetState
 from edge.pauses import collect_between_steps, freeze_garbage
 from export.runtime import OnnxPolicy
 from udan.envs.arena import ArenaBatch, ArenaConfig
@@ -82,7 +83,9 @@ def run(
                 decide.rehearse() or decide.rehearse(slots, cells, static)
                 time.sleep(ANALYSIS_S)
             t0 = time.perf_counter_ns()
-            decision = decide.decide(slots, set(slots) if fresh else set(), cells, static)
+            decision = decide.decide(
+                FleetState(slots, set(slots) if fresh else set(), cells, static)
+            )
             elapsed = time.perf_counter_ns() - t0
             if i >= 5:  # warm-up
                 total.append(elapsed)

@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from edge.fleetfile import load_fleet
 from edge.link import CarLink, DispatchReport
 from edge.transport import open_transport
+from udan.fleetfile import load_fleet
 
 CARS = 5
 STEPS = 400

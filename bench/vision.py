@@ -25,9 +25,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2
 import numpy as np
 
+from edge.calibration import CameraCalibration, save_calibration
 from edge.camera import Frame
 from edge.geometry import ArenaGeometry
-from edge.vision import CameraCalibration, Vision, save_calibration
+from edge.vision import Vision
 from hil.render import CameraModel, Renderer
 
 TARGET_P99_MS = 5.0

@@ -20,23 +20,27 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from edge.calibration import VisionError
 from edge.camera import CameraError, FrameGrabber, open_camera
+from edge.core import ControlCore
 from edge.decide import DecisionStep, TaskError, task_of
+from edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from edge.fleet import Fleet
-from edge.fleetfile import FleetFileError, load_fleet, write_fleet
 from edge.geometry import ArenaGeometry
 from edge.link import CarLink
 from edge.pauses import freeze_garbage, run_realtime, scheduler
-from edge.runtime import LoopConfig, Runtime, WorldError
+from edge.shell import EdgeShell, LoopConfig
 from edge.telemetry import Telemetry
 from edge.transport import TransportError, free_udp_port, host_port, open_transport
-from edge.vision import Vision, VisionError
+from edge.vision import Vision
 from export.metadata import MetadataError, obs_spec
 from udan.envs.errors import OneLineParser
+from udan.fleetfile import FleetFileError, load_fleet, write_fleet
 
 PROG = "udan-edge"
 BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
@@ -156,7 +160,7 @@ def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
 
 async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
     geometry = ArenaGeometry()
-    _, decide = load_policy(args.model, geometry)
+    _, policy_step = load_policy(args.model, geometry)
     cars = load_fleet(args.fleet)
     transport = open_transport(args.transport, cars, **_transport_options(args))
     vision = Vision(
@@ -165,18 +169,17 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     grabber = FrameGrabber(open_camera(args.camera))
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
-    config = LoopConfig(
-        step_timeout_s=args.step_timeout,
-        duration_s=args.duration,
-        episodes=args.episodes,
-        episode_steps=args.episode_steps,
-    )
+    config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    runtime = Runtime(grabber, vision, link, decide, fleet, telemetry, config, world=world)
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
+    shell = EdgeShell(grabber, vision, link, core, telemetry, config)
+    play = None
+    if world is not None:
+        play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
     freeze_garbage()
     await link.start()
     try:
-        return await runtime.run()
+        return await shell.run(play)
     finally:
         await link.close()
         telemetry.close()

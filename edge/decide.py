@@ -18,6 +18,7 @@ from itertools import chain
 
 import numpy as np
 
+from edge.fleet import FleetState
 from edge.safety import Filtered, filter_moves
 from export.runtime import OnnxPolicy
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
@@ -92,7 +93,7 @@ class DecisionStep:
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
         self._last: tuple | None = None  # the last step's inputs, for rehearse
-        self._owned_key: dict[int, int] | None = None  # the slots last settled: cars own them
+        self._owned_key: dict[int, int] | None = None  # the slots last credited: cars own them
 
     @property
     def returns(self) -> dict[int, float]:
@@ -117,22 +118,11 @@ class DecisionStep:
             self._layout = grid, layout_bits(grid[None], self.spec.view)
         return self._layout
 
-    def decide(
-        self,
-        slots: Mapping[int, int],
-        fresh: set[int],
-        cells_of: Mapping[int, tuple[int, int]],
-        static: Mapping[str, frozenset[tuple[int, int]]],
-        others: list[tuple[int, int]] | None = None,
-        moving: Mapping[int, int] | None = None,
-    ) -> Decision:
-        """Commands for the cars in ``slots`` (car id -> policy slot) standing on ``cells_of``.
-
-        ``fresh``: cars new this step. ``static``: cell markers by kind. ``others``: cells held by
-        things the edge does not drive. ``moving``: cars still in a move when the step period
-        ran out, with the action they are executing (they get ``wait`` and their destination is
-        held for them)."""
+    def decide(self, state: FleetState) -> Decision:
+        """Commands for the cars of ``state`` (the fleet as this step sees it): cars in
+        ``state.moving`` get ``wait`` and their destination is held for them."""
         t0 = time.perf_counter_ns()
+        slots, fresh, cells_of, static = state.slots, state.fresh, state.cells, state.static
         if not slots:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
@@ -141,13 +131,13 @@ class DecisionStep:
         fresh_mask = np.zeros(len(self.owner), bool)
         if fresh:
             fresh_mask[[slots[c] for c in fresh if c in slots]] = True
-        rewards = self._settle(cars, idx, fresh_mask, layout, pos, present, target, steady)
+        rewards = self._credit(cars, idx, fresh_mask, layout, pos, present, target, steady)
         obs = self._observe(padded, pos, present, target)
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
-        blockers = _blockers(static, others)
-        filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, moving)
+        blockers = _blockers(static, state.others)
+        filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, state.moving)
         self.t += 1
         self._last = dict(slots), dict(cells_of), dict(static), blockers
         t3 = time.perf_counter_ns()
@@ -195,7 +185,7 @@ class DecisionStep:
         filter_moves(layout, pos[0, idx], self.last_action[idx], others=blockers)
         return True
 
-    def settle(
+    def credit_last_step(
         self,
         slots: Mapping[int, int],
         cells_of: Mapping[int, tuple[int, int]],
@@ -207,7 +197,7 @@ class DecisionStep:
             return np.zeros(len(slots), np.float32)
         layout, _ = self.layout(static)
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
-        return self._settle(
+        return self._credit(
             cars, idx, np.zeros(len(self.owner), bool), layout, pos, present, target
         )
 
@@ -264,7 +254,7 @@ class DecisionStep:
         last_action, last_reward = self.last_action[None], self.last_reward[None]
         return observe(self.spec, codes, pos, last_action, last_reward, present)[0]
 
-    def _settle(
+    def _credit(
         self,
         cars: np.ndarray,
         idx: np.ndarray,
@@ -279,7 +269,7 @@ class DecisionStep:
         return; a car new to its slot, or ``fresh`` (per slot), starts with no last action, no
         reward, no return, and its slot is marked in ``fresh`` (in place) so the policy starts
         its memory empty too, flagged by the caller or not. ``steady``: the slots are those
-        last settled and no car is fresh, so every car already owns its slot."""
+        last credited and no car is fresh, so every car already owns its slot."""
         arrived = False
         if not steady:
             new = (self.owner[idx] != cars) | fresh[idx]

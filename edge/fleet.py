@@ -1,4 +1,5 @@
-"""Which cars are driven right now, and the policy slot each one holds.
+"""Which cars are driven right now, the policy slot each one holds, where each was seen last and
+what it was told last; and :class:`FleetState`, the fleet as one decision step sees it.
 
 A car is in the fleet when it has joined over the protocol (and its clock is synchronised) and
 the camera sees its marker. It leaves when its marker has not been seen for ``lost_s`` or when
@@ -9,12 +10,19 @@ first, which also re-forms any group the leaver was in). The camera updates the 
 frame and the runtime decides every few frames, so what happened between two steps (cars that
 joined, slots that were freed) is kept until :meth:`Fleet.stepped`. The number of cars changes
 from one step to the next without a pause.
+
+:class:`Fleet` is the one owner of the edge's per-car state between steps (the link keeps only
+each car's protocol session; the policy's per-slot memory lives in :mod:`edge.decide`, indexed by
+the slots given here). Each step reads a :class:`FleetState` snapshot of it: masking, grouping,
+the safety filter, dispatch and telemetry all see the same cars, cells and slots.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Set
 from dataclasses import dataclass, field
+
+Cell = tuple[int, int]
 
 
 @dataclass
@@ -25,14 +33,44 @@ class Change:
     left: list[int] = field(default_factory=list)
 
 
+@dataclass(frozen=True, slots=True)
+class FleetState:
+    """The fleet at one decision step: built once when the step is due, then read by every
+    stage of it and never changed (each mapping is the step's own copy)."""
+
+    slots: Mapping[int, int]
+    """Car id -> policy slot, for every car driven this step."""
+    fresh: Set[int]
+    """Cars new to the policy this step: their memory starts empty."""
+    cells: Mapping[int, Cell]
+    """Car id -> the cell the camera saw it on last."""
+    static: Mapping[str, frozenset[Cell]] = field(default_factory=dict)
+    """Cell markers by kind ("obstacle", "wall", "water", and the surround "target")."""
+    others: list[Cell] = field(default_factory=list)
+    """Cells of markers on the grid that are not cars of the fleet: they block moves."""
+    moving: Mapping[int, int] = field(default_factory=dict)
+    """Cars still in a move when the step period ran out -> the action they are executing."""
+    frame: int = -1
+    """Index of the frame the step decides on."""
+    t_capture_ns: int = 0
+    """When that frame was captured."""
+
+
 class Fleet:
-    """Membership and slots, keyed by car id; ``markers`` maps car id -> marker id."""
+    """Membership, slots, last cells and last commands, keyed by car id; ``markers`` maps car
+    id -> marker id."""
 
     def __init__(self, markers: Mapping[int, int], lost_s: float = 0.5) -> None:
         self.markers = dict(markers)
+        self.car_of_marker = {m: c for c, m in self.markers.items()}
         self.lost_ns = int(lost_s * 1e9)
         self.slot: dict[int, int] = {}
         self.fresh: set[int] = set()
+        self.cell: dict[int, Cell] = {}
+        """Where each car was last seen on the grid (kept across episodes: the first step of
+        the next one is rehearsed from it)."""
+        self.command: dict[int, int] = {}
+        """The last command each car of the fleet was sent."""
         self._last_seen: dict[int, int] = {}
         self._freed: set[int] = set()
         self._decided = False  # a step was decided since the last reset
@@ -66,6 +104,7 @@ class Fleet:
                 if self._decided:  # before any step no policy memory is in the slot
                     self._freed.add(slot)
                 self.fresh.discard(car)  # joined and gone again before a step saw it
+                self.command.pop(car, None)
                 change.left.append(car)
         taken = set(self.slot.values()) | self._freed
         for car in sorted(ready_set - self.slot.keys()):
@@ -77,10 +116,30 @@ class Fleet:
                 change.joined.append(car)
         return change
 
+    def moving(self, finished: Callable[[int], bool]) -> dict[int, int]:
+        """Cars whose last move has not ``finished`` -> the action they are executing."""
+        return {c: self.command[c] for c in self.slot if c in self.command and not finished(c)}
+
+    def snapshot(
+        self,
+        static: Mapping[str, frozenset[Cell]],
+        others: list[Cell],
+        moving: Mapping[int, int],
+        frame: int,
+        t_capture_ns: int,
+    ) -> FleetState:
+        """The fleet as a step decided now sees it."""
+        slots = dict(self.slot)
+        cells = {c: self.cell[c] for c in slots}
+        return FleetState(
+            slots, set(self.fresh), cells, static, others, moving, frame, t_capture_ns
+        )
+
     def reset(self) -> None:
-        """Forget every car (a new episode, or after an emergency stop)."""
+        """Forget every car but where it was seen (a new episode)."""
         self.slot.clear()
         self.fresh.clear()
+        self.command.clear()
         self._freed.clear()
         self._last_seen.clear()
         self._decided = False

@@ -28,8 +28,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from edge import protocol as ep
-from edge.fleetfile import CarEntry
 from edge.transport import Transport, TransportError
+from udan.fleetfile import CarEntry
 
 RETRY_NS = 2_000_000  # resend an unacked command after this long (loopback rtt is ~0.3 ms)
 SEND_MARGIN_NS = 1_000_000  # no send this close to the deadline: it would arrive expired
@@ -386,7 +386,7 @@ class CarLink:
                     async with asyncio.timeout((wake - now) / 1e9):
                         await self._resolved.wait()
 
-    def _settle(self, car_id: int, result: str) -> None:
+    def _resolve(self, car_id: int, result: str) -> None:
         """End the car's command in the dispatch under way, if it has one."""
         flight = self._flights.pop(car_id, None)
         if flight is not None:
@@ -427,7 +427,7 @@ class CarLink:
     def _forget(self, st: CarState, why: str) -> None:
         """The car's session ended: what it reported and what was sent to it no longer apply."""
         st.status = st.command = st.sync_requested_ns = st.sync_rtt_ns = None
-        self._settle(st.car_id, why)
+        self._resolve(st.car_id, why)
 
     def _on_join(self, event: ep.Joined, st: CarState, now: int) -> None:
         if not event.repeat:
@@ -450,7 +450,7 @@ class CarLink:
         r = flight.report
         r.acked, r.acked_ns = accepted, now
         r.car_received_ns, r.car_rx_us = event.received_at_ns, event.car_rx_us
-        self._settle(st.car_id, event.result.name.lower())
+        self._resolve(st.car_id, event.result.name.lower())
 
     # --- housekeeping ---
     async def _housekeeping(self) -> None:

@@ -26,8 +26,8 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any, ClassVar
 
-from edge.fleetfile import CarEntry
 from edge.protocol import CAN_CAR_BASE, CAN_MAX_CAR, FrameError, can_pack, can_unpack
+from udan.fleetfile import CarEntry
 
 FrameHandler = Callable[[bytes], None]
 

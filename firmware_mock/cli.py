@@ -23,9 +23,10 @@ from collections.abc import Sequence
 from typing import Any
 
 from firmware_mock.firmware import DEFAULT_TIMING, CarTiming
-from firmware_mock.fleet import FleetError, load_fleet
+from firmware_mock.fleet import load_fleet
 from firmware_mock.udp import MockCar
 from udan.envs.errors import OneLineParser
+from udan.fleetfile import FleetFileError
 
 PROG = "udan-firmware-mock"
 
@@ -189,7 +190,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         asyncio.run(_run(args))
-    except (FleetError, UsageError) as err:
+    except (FleetFileError, UsageError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
     return 0

@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 
 from edge import protocol as ep
-from edge.fleetfile import write_fleet
-from edge.runtime import world_request
+from edge.episodes import world_request
 from edge.transport import free_udp_port
 from export.runtime import OnnxPolicy
 from hil.faults import FaultPlan, FaultSpecError, parse_faults
 from hil.world import Episode, episode_arena
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
+from udan.fleetfile import write_fleet
 
 PROG = "udan-hil"
 TASKS = ("find_water",)

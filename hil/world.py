@@ -44,13 +44,14 @@ import numpy as np
 from edge.geometry import ArenaGeometry
 from edge.pauses import freeze_garbage
 from firmware_mock.firmware import CarTiming
-from firmware_mock.fleet import FleetError, load_fleet
+from firmware_mock.fleet import load_fleet
 from firmware_mock.udp import MockCar
 from hil.render import CameraModel, Renderer
 from hil.vcam import VirtualCamera
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
+from udan.fleetfile import FleetFileError
 
 PROG = "hil-world"
 Cell = tuple[int, int]
@@ -531,7 +532,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         server = WorldServer(args)
         summary = asyncio.run(server.run())
-    except (FleetError, EnvConfigError, ValueError) as err:
+    except (FleetFileError, EnvConfigError, ValueError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
     except OSError as err:

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from edge import safety
 from edge.decide import DecisionStep, TaskError, task_of
-from edge.fleet import Fleet
+from edge.fleet import Fleet, FleetState
 from edge.safety import STOP, filter_moves
 from export.runtime import OnnxPolicy
 from udan.envs.arena import ArenaBatch, ArenaConfig
@@ -175,7 +175,7 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse=False) ->
         if rehearse:
             step.rehearse()
             step.rehearse()
-        decision = step.decide(slots, set(slots) if t == 0 else set(), cells, static)
+        decision = step.decide(FleetState(slots, set(slots) if t == 0 else set(), cells, static))
         assert decision.actions.tolist() == ref_actions[list(slots.values())].tolist()
         assert decision.formed == reference.formed == (t % reference.interval == 0)
         sim.step(ref_actions[None])
@@ -191,7 +191,7 @@ def _drive_one_episode(cfg, sim, edge_world, reference, step, rehearse=False) ->
     assert np.array_equal(sim.episode_return, edge_world.episode_return)
     sim_returns = {car: float(sim.episode_return[0, slot]) for car, slot in slots.items()}
     cells = {c: tuple(edge_world.pos[0, s]) for c, s in slots.items()}
-    assert step.settle(slots, cells, static).sum() == edge_world.last_reward[0].sum()
+    assert step.credit_last_step(slots, cells, static).sum() == edge_world.last_reward[0].sum()
     assert step.returns == pytest.approx(sim_returns)
 
 
@@ -204,7 +204,7 @@ def test_rehearsing_an_episodes_first_step_changes_nothing() -> None:
         DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec) for _ in "ab"
     )
     for step in (plain, rehearsed):  # an episode on 2 slots, then a new one
-        step.decide({7: 0, 9: 1}, {7, 9}, {7: (6, 4), 9: (8, 8)}, static)
+        step.decide(FleetState({7: 0, 9: 1}, {7, 9}, {7: (6, 4), 9: (8, 8)}, static))
         step.reset()
     assert not rehearsed.rehearse()
     # a fleet in more slots than the step has is not rehearsed: it would grow the step's state
@@ -213,7 +213,7 @@ def test_rehearsing_an_episodes_first_step_changes_nothing() -> None:
     assert rehearsed.rehearse({7: 0, 9: 1}, {7: (7, 2), 9: (5, 5)}, static)
     for t, cells in enumerate([{7: (7, 2), 9: (5, 5)}, {7: (6, 2), 9: (4, 5)}]):
         a, b = (
-            step.decide({7: 0, 9: 1}, {7, 9} if t == 0 else set(), cells, static)
+            step.decide(FleetState({7: 0, 9: 1}, {7, 9} if t == 0 else set(), cells, static))
             for step in (plain, rehearsed)
         )
         assert a.actions.tolist() == b.actions.tolist() and a.formed == b.formed
@@ -229,11 +229,13 @@ def test_a_rehearsal_uses_the_last_step_as_it_was() -> None:
     decisions = []
     for step in steps:
         slots, cells = {7: 0, 9: 1}, {7: (6, 4), 9: (8, 8)}
-        step.decide(slots, {7, 9}, cells, static)
+        step.decide(FleetState(slots, {7, 9}, cells, static))
         if step is steps[0]:
             slots[3], cells[3] = 6, (0, 0)  # the caller reuses its dicts
             assert step.rehearse()
-        decisions.append(step.decide({7: 0, 9: 1}, set(), {7: (5, 4), 9: (8, 7)}, static))
+        decisions.append(
+            step.decide(FleetState({7: 0, 9: 1}, set(), {7: (5, 4), 9: (8, 7)}, static))
+        )
     a, b = decisions
     assert a.actions.tolist() == b.actions.tolist() and a.formed == b.formed
     assert len(steps[0].owner) == len(steps[1].owner) == 2
@@ -243,16 +245,16 @@ def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
     spec = ArenaConfig().spec
     step = DecisionStep(OnnxPolicy(MODEL, expected=spec), "find_water", spec)
     static = {"water": frozenset({(0, 4)}), "wall": frozenset({(0, 3), (0, 5)})}
-    d = step.decide({7: 0}, {7}, {7: (6, 4)}, static)
+    d = step.decide(FleetState({7: 0}, {7}, {7: (6, 4)}, static))
     assert d.cars == (7,) and d.commands.shape == (1,)
-    d = step.decide({7: 0, 9: 2}, {9}, {7: (6, 4), 9: (8, 8)}, static, moving={7: UP})
+    d = step.decide(FleetState({7: 0, 9: 2}, {9}, {7: (6, 4), 9: (8, 8)}, static, moving={7: UP}))
     assert d.cars == (7, 9) and d.commands[0] == WAIT  # a car still moving is not re-commanded
-    d = step.decide({9: 2}, set(), {9: (8, 8)}, static)
+    d = step.decide(FleetState({9: 2}, set(), {9: (8, 8)}, static))
     assert d.cars == (9,)
-    d = step.decide({8: 0, 9: 2}, {8}, {8: (5, 0), 9: (8, 8)}, static)
+    d = step.decide(FleetState({8: 0, 9: 2}, {8}, {8: (5, 0), 9: (8, 8)}, static))
     assert d.cars == (8, 9) and step.owner[0] == 8  # car 8 took car 7's slot, fresh
     assert set(step.returns) == {7, 8, 9}  # car 7 keeps what it earned
-    d = step.decide({}, set(), {}, static)
+    d = step.decide(FleetState({}, set(), {}, static))
     assert d.cars == () and d.commands.shape == (0,)
 
 
@@ -282,13 +284,13 @@ def test_a_steady_fleet_decides_as_one_rebuilt_every_step() -> None:
             for i, car in enumerate(slots)
         }
         if what == "settle":
-            a = kept.settle(dict(slots), dict(cells), static)
-            assert a.tolist() == rebuilt.settle(dict(slots), dict(cells), static).tolist()
+            a = kept.credit_last_step(dict(slots), dict(cells), static)
+            assert a.tolist() == rebuilt.credit_last_step(dict(slots), dict(cells), static).tolist()
             continue
         fresh = {car for car in slots if car not in last} if t % 7 else set(slots)
         rebuilt._fleet_key = rebuilt._owned_key = None
-        a = kept.decide(dict(slots), set(fresh), dict(cells), static)
-        b = rebuilt.decide(dict(slots), set(fresh), dict(cells), static)
+        a = kept.decide(FleetState(dict(slots), set(fresh), dict(cells), static))
+        b = rebuilt.decide(FleetState(dict(slots), set(fresh), dict(cells), static))
         assert (a.cars, a.actions.tolist(), a.commands.tolist(), a.rewards.tolist()) == (
             b.cars,
             b.actions.tolist(),
@@ -310,10 +312,12 @@ def test_a_car_taking_a_slot_starts_with_empty_memory_flagged_fresh_or_not() -> 
     )
     for step in (flagged, unflagged):
         for t, cell in enumerate([(8, 1), (7, 1), (6, 1), (5, 1), (4, 1), (3, 1)]):
-            step.decide({7: 0, 9: 1}, {7, 9} if t == 0 else set(), {7: cell, 9: (8, 8)}, static)
+            step.decide(
+                FleetState({7: 0, 9: 1}, {7, 9} if t == 0 else set(), {7: cell, 9: (8, 8)}, static)
+            )
         assert np.abs(step.policy.h[0, 0]).max() > 0  # car 7 remembers something
-    a = flagged.decide({8: 0, 9: 1}, {8}, {8: (6, 6), 9: (8, 8)}, static)
-    b = unflagged.decide({8: 0, 9: 1}, set(), {8: (6, 6), 9: (8, 8)}, static)
+    a = flagged.decide(FleetState({8: 0, 9: 1}, {8}, {8: (6, 6), 9: (8, 8)}, static))
+    b = unflagged.decide(FleetState({8: 0, 9: 1}, set(), {8: (6, 6), 9: (8, 8)}, static))
     assert a.actions.tolist() == b.actions.tolist() and a.stopped == b.stopped == 0
     assert np.array_equal(flagged.policy.h, unflagged.policy.h)
     assert np.array_equal(flagged.policy.q, unflagged.policy.q)

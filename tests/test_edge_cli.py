@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from edge import cli
-from edge.fleetfile import write_fleet
 from edge.pauses import freeze_garbage, run_realtime, scheduler
 from edge.transport import free_udp_port
+from udan.fleetfile import write_fleet
 
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
 MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"

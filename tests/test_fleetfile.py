@@ -1,4 +1,5 @@
-"""The edge's fleet.toml reader: good files parse, every bad input of section 12 is one line."""
+"""The one fleet.toml reader (edge and mock): good files parse, every bad input of section 12 is
+one line."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from edge.fleetfile import CarEntry, FleetFileError, load_fleet
 from firmware_mock import fleet as mock_fleet
+from udan.fleetfile import CarEntry, FleetFileError, load_fleet
 
 KEY1 = bytes(range(32)).hex()
 KEY2 = bytes(range(100, 132)).hex()
@@ -139,5 +140,14 @@ def test_mock_only_fields_are_ignored_by_the_edge(tmp_path: Path) -> None:
     # a fault value the mock refuses does not stop the edge from driving real cars
     path = _write(tmp_path, _car(start='"anywhere"') + "[car.faults]\nloss = 7\n")
     assert load_fleet(path)[0].car_id == 1
-    with pytest.raises(mock_fleet.FleetError):
+    with pytest.raises(FleetFileError):
         mock_fleet.load_fleet(path, base_port=0)
+
+
+def test_the_mock_gives_a_car_without_a_port_one_from_base_port_or_refuses(tmp_path: Path) -> None:
+    path = _write(tmp_path, _car() + _car(id=2, marker=2, port=9102))
+    assert [s.port for s in mock_fleet.load_fleet(path, base_port=9100)] == [9101, 9102]
+    with pytest.raises(FleetFileError, match=r"^fleet file .*: car 1: no port or address"):
+        mock_fleet.load_fleet(path)
+    with pytest.raises(FleetFileError, match=r"duplicate port 9102 on 127\.0\.0\.1"):
+        mock_fleet.load_fleet(path, base_port=9101)

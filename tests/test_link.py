@@ -26,7 +26,6 @@ import can
 import pytest
 
 from edge import protocol as ep
-from edge.fleetfile import CarEntry, load_fleet
 from edge.link import CarLink, DispatchReport
 from edge.transport import LoopTransport, Transport, open_transport
 from firmware_mock import serial_link as sl
@@ -36,6 +35,7 @@ from firmware_mock.firmware import CarFirmware, CarTiming
 from firmware_mock.fleet import CarSpec
 from firmware_mock.motor import Drive, GridWorld
 from udan.envs.rules import DOWN, LEFT, RIGHT, UP, WAIT
+from udan.fleetfile import CarEntry, load_fleet
 
 FAST = CarTiming(cell_time_s=0.02, watchdog_s=0.3, status_period_s=0.1, join_period_s=0.1)
 MOVES = (UP, DOWN, LEFT, RIGHT)

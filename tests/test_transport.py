@@ -22,8 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edge import transport as tr
-from edge.fleetfile import CarEntry
 from firmware_mock import serial_link as sl
+from udan.fleetfile import CarEntry
 
 VECTORS = json.loads((Path(__file__).parent.parent / "docs/protocol_vectors.json").read_text())
 KEY = bytes(range(32))

@@ -9,15 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from edge.calibration import CameraCalibration, VisionError, load_calibration, save_calibration
 from edge.camera import Frame
 from edge.geometry import CELL_KIND_IDS, ArenaGeometry
-from edge.vision import (
-    CameraCalibration,
-    Vision,
-    VisionError,
-    load_calibration,
-    save_calibration,
-)
+from edge.vision import Vision
 from hil.render import CameraModel, Renderer
 
 GEOMETRY = ArenaGeometry()

@@ -1,10 +1,11 @@
-"""The edge's reader of fleet.toml (docs/protocol.md section 12): which cars it may drive.
+"""fleet.toml (docs/protocol.md section 12): which cars exist, their markers, keys and addresses.
 
-Written separately from the mock firmware's loader (edge and firmware_mock share no code), to the
-same rules: every bad input is one ``FleetFileError`` whose message names the file and the car,
-so ``udan-edge`` can print one line and exit instead of showing a traceback. Mock-only fields
-(``start``, ``faults``) are accepted and ignored: a setting for simulated cars must not keep the
-edge from driving real ones, and their values are the mock's to check.
+The one reader of the fleet file, in the lowest layer so that both the edge (which cars it may
+drive) and the mock firmware (which cars it stands in for) read it with the same rules: every bad
+input is one ``FleetFileError`` whose message names the file and the car, so a command can print
+one line and exit 2 instead of showing a traceback. Mock-only fields (``start``, ``faults``) are
+kept raw in :attr:`CarEntry.mock` and checked by the mock (:mod:`firmware_mock.fleet`): a setting
+for simulated cars must not keep the edge from driving real ones.
 
 A car's address is ``address = "HOST:PORT"`` or ``port`` (on 127.0.0.1). A car with neither, or
 with port 0 (the mock's "any free port"), has no address until its first authenticated frame
@@ -21,20 +22,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from edge.protocol import KEY_BYTES
-
 _EDGE_FIELDS = {"id", "marker", "port", "address", "key", "key_file", "serial"}
 _MOCK_ONLY_FIELDS = {"start", "faults"}
 _HEX = re.compile(r"[0-9a-fA-F]*")
+#: A car key's length in bytes (its HMAC-SHA256 key, docs/protocol.md section 12).
+KEY_BYTES = 32
 
 
 class FleetFileError(ValueError):
-    """A fleet file the edge cannot use; the message is one line naming the file and the car."""
+    """A fleet file that cannot be used; the message is one line naming the file and the car."""
 
 
 @dataclass(frozen=True)
 class CarEntry:
-    """One car the edge may drive: its ids, its key and where to reach it."""
+    """One car of the fleet: its ids, its key and where to reach it (None: learned from its
+    frames, or for the mock a port from ``--base-port``)."""
 
     car_id: int
     marker: int
@@ -42,6 +44,8 @@ class CarEntry:
     host: str | None = None
     port: int | None = None
     serial: str | None = None  # device of the car's wired serial link (serial transport)
+    mock: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    """The mock-only fields as written (``start``, ``faults``): the mock checks them."""
 
     @property
     def address(self) -> tuple[str, int] | None:
@@ -122,7 +126,8 @@ def _entry(car: Any, index: int, base_dir: Path) -> CarEntry:
     device = car.get("serial")
     if device is not None and (not isinstance(device, str) or not device):
         raise FleetFileError(f"{where}: serial must be a device path, got {device!r}")
-    return CarEntry(car_id, marker, key, host, port, device)
+    mock = {name: car[name] for name in _MOCK_ONLY_FIELDS if name in car}
+    return CarEntry(car_id, marker, key, host, port, device, mock)
 
 
 def _first_duplicate(values: list[Any]) -> Any:

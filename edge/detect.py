@@ -1,0 +1,130 @@
+"""Marker detection: ArUco calls on small images, each tuned to few candidates.
+
+ArUco's cost is mostly per call and per candidate quadrilateral it must decode, not per pixel, so
+every caller (tracking, the sweep, the calibration check) searches a window at the search
+resolution with a tight contour-length range; :meth:`MarkerDetector.find` is the second chance
+at full resolution for a small, noisy marker the search resolution failed to decode.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+SEARCH_LINES = 600
+"""Frames are searched downscaled by an integer factor to about this many lines."""
+MIN_CONTOUR = 28
+"""Shortest marker contour searched for, pixels of the search image: a 10-pixel marker turned
+45 degrees (see `shape_of`); smaller ones do not decode."""
+THRESHOLD_WINDOW = 5
+"""One adaptive-threshold window (search pixels, under two modules of a far car's marker): each
+extra window costs a full thresholding and contour pass."""
+THRESHOLD_OFFSET = 12
+"""How much darker than its neighbourhood a pixel must be to count as ink. OpenCV's 7 lets sensor
+noise and faint floor lines (the grid) through as contours, every one of which costs; marker ink
+is more than a hundred grey levels darker than its paper."""
+CELL_PIXELS = 8
+"""Pixels per module when a candidate is unwarped to read its bits: more than OpenCV's 4 makes
+small markers (3 search pixels per module) decode reliably, for no measurable cost."""
+
+
+def shape_of(corners: np.ndarray) -> tuple[float, float, float, float]:
+    """(centre x, centre y, mean side, contour length) of a marker's image quadrilateral. The
+    contour length is what the detector counts as a perimeter, the points of the 8-connected
+    contour: max(|dx|, |dy|) per side, up to 30 % less than the side sum when turned 45°."""
+    (ax, ay), (bx, by), (cx, cy), (dx, dy) = corners.tolist()
+    sides = ((bx - ax, by - ay), (cx - bx, cy - by), (dx - cx, dy - cy), (ax - dx, ay - dy))
+    side = sum(math.hypot(u, v) for u, v in sides) / 4
+    length = sum(max(abs(u), abs(v)) for u, v in sides)
+    return (ax + bx + cx + dx) / 4, (ay + by + cy + dy) / 4, side, length
+
+
+class MarkerDetector:
+    """One ArUco detector for frames of one size (:meth:`setup`); ``s`` is the search
+    resolution's downscale factor."""
+
+    def __init__(self, dictionary: str) -> None:
+        self._params = cv2.aruco.DetectorParameters()
+        self._params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+        self._params.minDistanceToBorder = 0
+        self._params.adaptiveThreshConstant = THRESHOLD_OFFSET
+        self._params.perspectiveRemovePixelPerCell = CELL_PIXELS
+        self._detector = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), self._params
+        )
+        self.shape: tuple[int, int] | None = None
+        self.s = 1
+
+    def setup(self, shape: tuple[int, int]) -> None:
+        """Frames of ``shape`` (h, w) from now on."""
+        self.shape = shape
+        self.s = max(1, round(shape[0] / SEARCH_LINES))
+
+    def detect(
+        self,
+        img: np.ndarray,
+        box: tuple[int, int, int, int],
+        perimeter: tuple[float, float],
+        scale: int | None = None,
+    ) -> list[tuple[int, np.ndarray]]:
+        """Markers in the image window `box` (x0, y0, x1, y1) whose contour length is within
+        `perimeter` (full-resolution pixels, see `shape_of`), searched at the search
+        resolution; returns [(id, corners (4, 2) full-resolution pixels)], corners still
+        approximate. A tight range is what keeps tracking cheap: a car's body and its label are
+        squares too, and every candidate the detector has to decode costs. `scale` overrides
+        the search downscale factor (1: full resolution)."""
+        s = self.s if scale is None else scale
+        x0, y0, x1, y1 = box
+        x1 -= (x1 - x0) % s
+        y1 -= (y1 - y0) % s
+        if min(x1 - x0, y1 - y0) < perimeter[0] / 4:
+            return []
+        roi = img[y0:y1, x0:x1]
+        if s > 1:
+            roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
+        off = np.array([x0 + (s - 1) / 2, y0 + (s - 1) / 2])
+        window = THRESHOLD_WINDOW * self.s // s | 1
+        ids, quads = self.markers(roi, (perimeter[0] / s, perimeter[1] / s), window)
+        return list(zip(ids, quads * s + off, strict=True))
+
+    def markers(
+        self, image: np.ndarray, perimeter: tuple[float, float], window: int
+    ) -> tuple[list[int], np.ndarray]:
+        """One detector call: ids and corners (n, 4, 2) of the markers in `image` whose contour
+        length (in its pixels) is within `perimeter`, thresholded with one `window`."""
+        longest = max(image.shape)
+        p = self._params
+        p.adaptiveThreshWinSizeMin = p.adaptiveThreshWinSizeMax = window
+        p.minMarkerPerimeterRate = max(perimeter[0], MIN_CONTOUR) / longest
+        p.maxMarkerPerimeterRate = perimeter[1] / longest
+        self._detector.setDetectorParameters(p)
+        corners, ids, _ = self._detector.detectMarkers(image)
+        if ids is None:
+            return [], np.zeros((0, 4, 2))
+        return ids.ravel().tolist(), np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+
+    def box(self, cx: float, cy: float, half: float) -> tuple[int, int, int, int]:
+        """The image window of half side `half` around (cx, cy), clipped to the frame."""
+        h, w = self.shape
+        return (
+            max(int(cx - half), 0),
+            max(int(cy - half), 0),
+            min(int(cx + half) + 1, w),
+            min(int(cy + half) + 1, h),
+        )
+
+    def find(
+        self, img: np.ndarray, marker: int, cx: float, cy: float, half: float, length: float
+    ) -> np.ndarray | None:
+        """`marker` near (cx, cy), its contour length near `length`, at full resolution: the
+        second chance for a small, noisy marker the search resolution failed to decode."""
+        hits = [
+            c
+            for m, c in self.detect(
+                img, self.box(cx, cy, half), (0.8 * length, 1.2 * length), scale=1
+            )
+            if m == marker
+        ]
+        return min(hits, key=lambda c: math.dist(c.mean(0), (cx, cy))) if hits else None

@@ -1,0 +1,206 @@
+"""The asyncio shell around the control core (:mod:`edge.core`): frames in, commands out.
+
+The shell does the I/O and the timing tricks (rehearsal while a frame is analysed, garbage
+collection between steps); the core decides what happens. One asyncio loop. Capture runs in its
+own thread (:class:`edge.camera.FrameGrabber`, newest frame wins) and vision in a worker thread
+(OpenCV releases the GIL), so the dispatcher's retransmission timers keep running while a frame
+is analysed.
+
+When a decision step happens is the core's rule (:class:`edge.core.ControlCore`). All commands
+of a step leave at once, each valid until the decision + 10 ms.
+
+Whatever ends the run — its duration, Ctrl-C, SIGTERM, the end of a video, or an exception — the
+``finally`` sends an emergency stop to every joined car before anything is closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import signal
+import time
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+from edge.camera import Frame, FrameGrabber, yield_to_dispatch
+from edge.core import ControlCore, StepTiming
+from edge.fleet import FleetState
+from edge.link import CarLink
+from edge.pauses import collect_between_steps
+from edge.telemetry import Telemetry
+from edge.vision import Scene, Vision
+
+ESTOP_GRACE_S = 0.05
+#: With no step for this long, collect anyway.
+COLLECT_IDLE_NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Timing of the main loop."""
+
+    step_timeout_s: float = 1.0
+    """Longest a step waits for moves to finish before deciding anyway."""
+    stall_s: float = 0.5
+    """No frame for this long is a camera stall (counted; cars stop by their watchdog)."""
+    duration_s: float | None = None
+    """Stop after this long (None: until a signal, or the episodes are done)."""
+    unseen_grace_s: float = 0.1
+    """Longest a step waits for a car the camera missed (then it is stopped for the step)."""
+
+    @property
+    def step_timing(self) -> StepTiming:
+        """The core's part of it."""
+        return StepTiming(int(self.step_timeout_s * 1e9), int(self.unseen_grace_s * 1e9))
+
+
+class EdgeShell:
+    """Wires camera, vision, link and telemetry around a :class:`ControlCore`; ``run`` is the
+    whole job."""
+
+    def __init__(
+        self,
+        grabber: FrameGrabber,
+        vision: Vision,
+        link: CarLink,
+        core: ControlCore,
+        telemetry: Telemetry,
+        config: LoopConfig = LoopConfig(),
+    ) -> None:
+        self.grabber = grabber
+        self.vision = vision
+        self.link = link
+        self.core = core
+        self.telemetry = telemetry
+        self.config = config
+        self.stop = asyncio.Event()
+        self._vision_pool = ThreadPoolExecutor(
+            1, thread_name_prefix="vision", initializer=yield_to_dispatch
+        )
+        self._collections = 0
+        self._longest_collection_ns = 0
+        self._collected_ns = time.monotonic_ns()
+
+    # ------------------------------------------------------------------ the job
+    async def run(
+        self, play: Callable[[EdgeShell], Awaitable[object]] | None = None
+    ) -> dict[str, Any]:
+        """Drive until the duration, a signal, the end of the camera or of ``play`` (which
+        drives the shell its own way: :class:`edge.episodes.EpisodePlayer`); emergency-stop
+        every car on the way out, whatever happened; return the report. The link is started
+        (and closed) by the caller, so a car can be told the edge's address before the run."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, self.stop.set)
+        if self.config.duration_s is not None:
+            loop.call_later(self.config.duration_s, self.stop.set)
+        gc.disable()  # collections run between steps (_collect), never inside one
+        try:
+            self.grabber.start()
+            if play is None:
+                await self.drive(max_steps=None)
+            else:
+                await play(self)
+        finally:
+            gc.enable()
+            self.core.emergency_stop()
+            sent = self.link.estop_all()
+            self.telemetry.event("estop", cars=sent)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+            await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
+            self.grabber.close()
+            self._vision_pool.shutdown(wait=True)
+        report = self.telemetry.report()
+        report["final"] = self.telemetry.final_line()
+        report["link"] = self.link.counters()
+        report["camera"] = {"captured": self.grabber.captured, "dropped": self.grabber.dropped}
+        report["gc"] = {
+            "collections": self._collections,
+            "longest_ms": round(self._longest_collection_ns / 1e6, 3),
+        }
+        return report
+
+    # ------------------------------------------------------------------ frames
+    async def next_scene(self) -> Scene | None:
+        """The next frame's scene (one the core does not find stale), with the fleet updated;
+        None on a stall, the end of the stream, or a stop."""
+        while not self.stop.is_set():
+            frame = await self._wait_frame()
+            if frame is None:
+                return None
+            if not self.core.wants(frame.t_capture_ns):
+                continue
+            loop = asyncio.get_running_loop()
+            analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
+            self.core.warm_up(self.link.move_finished)  # this frame may be the deciding one
+            scene = await analysed
+            now = time.monotonic_ns()
+            self._fold(scene, frame, now)
+            return scene
+        return None
+
+    async def _wait_frame(self) -> Frame | None:
+        stopping = asyncio.ensure_future(self.stop.wait())
+        grabbing = asyncio.ensure_future(self.grabber.next_frame(self.config.stall_s))
+        done, _ = await asyncio.wait({stopping, grabbing}, return_when=asyncio.FIRST_COMPLETED)
+        stopping.cancel()
+        if grabbing not in done:
+            grabbing.cancel()
+            return None
+        frame = grabbing.result()
+        if frame is None and not self.grabber.ended:
+            self.telemetry.event("camera_stall", stall_s=self.config.stall_s)
+        elif frame is None:
+            self.stop.set()
+        return frame
+
+    def _fold(self, scene: Scene, frame: Frame, now: int) -> None:
+        """A scene into the core; telemetry of the frame and of the fleet's changes."""
+        change = self.core.see(scene, self.link.ready_cars(), now)
+        for car in change.joined:
+            self.telemetry.event("fleet_join", car=car)
+        for car in change.left:
+            self.telemetry.event("fleet_leave", car=car)
+        seen = sum(s.inside for s in scene.cars.values())
+        self.telemetry.frame(frame.index, frame.t_capture_ns, now, seen, self.grabber.dropped)
+
+    # ------------------------------------------------------------------ steps
+    def _collect(self) -> None:
+        """Python's cyclic garbage collection, right after a dispatch: the cars now take a move
+        (~200 ms) before the next decision. Left to itself, a full collection of this process
+        stops every thread for ~14 ms (measured), more than a command's 10 ms, whenever it
+        happens to fall; frozen at start and run here, it is small and harmless."""
+        start = time.monotonic_ns()
+        collect_between_steps(self._collections)
+        self._collected_ns = time.monotonic_ns()
+        self._collections += 1
+        self._longest_collection_ns = max(self._longest_collection_ns, self._collected_ns - start)
+
+    async def drive(self, max_steps: int | None) -> int:
+        """Decide and dispatch step after step; returns the number of steps made."""
+        core, steps = self.core, 0
+        core.wait_for_moves(time.monotonic_ns())
+        while not self.stop.is_set() and (max_steps is None or steps < max_steps):
+            scene = await self.next_scene()
+            if time.monotonic_ns() - self._collected_ns > COLLECT_IDLE_NS:
+                self._collect()  # no step for a while (a stall, an empty arena)
+            if scene is None:
+                continue
+            now = time.monotonic_ns()
+            state = core.due(scene, self.link.move_finished, now)
+            if state is None:
+                continue
+            await self._step(state, now)
+            self._collect()
+            steps += 1
+            core.wait_for_moves(time.monotonic_ns())
+        return steps
+
+    async def _step(self, state: FleetState, state_ns: int) -> None:
+        """One decision and its dispatch, with the step's telemetry."""
+        decision, commands, decided_ns = self.core.commands_for(state, state_ns)
+        report = await self.link.dispatch(commands, decided_ns)
+        self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))

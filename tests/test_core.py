@@ -1,0 +1,255 @@
+"""The control core on its own: scenes, the link's ready and finished cars and a clock go in,
+steps come out; no socket, no thread, no real clock. The policy is the bundled find_water model
+(real masking, grouping, inference and safety filter)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import pytest
+
+from edge.core import ControlCore, StepTiming
+from edge.decide import DecisionStep
+from edge.fleet import Fleet, FleetState
+from edge.link import CommandReport, DispatchReport
+from edge.vision import CarSighting, Scene
+from export.runtime import OnnxPolicy
+from udan.envs.arena import ArenaConfig
+from udan.envs.rules import WAIT
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+MS = 1_000_000
+MARKERS = {1: 11, 2: 12, 3: 13}
+MARKER_CAR = {m: c for c, m in MARKERS.items()}
+STATIC = {
+    "obstacle": frozenset({(4, 2)}),
+    "wall": frozenset(),
+    "water": frozenset({(0, 1), (0, 4), (0, 7)}),
+}
+TIMING = StepTiming(step_timeout_ns=1000 * MS, unseen_grace_ns=100 * MS)
+
+
+class Clock:
+    """The time the core reads for its decisions; tests set it."""
+
+    def __init__(self) -> None:
+        self.ns = 0
+
+    def __call__(self) -> int:
+        return self.ns
+
+
+@pytest.fixture(scope="module")
+def policy() -> OnnxPolicy:
+    return OnnxPolicy(MODEL, expected=ArenaConfig(task="find_water").spec)
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def core(policy: OnnxPolicy, clock: Clock) -> ControlCore:
+    spec = ArenaConfig(task="find_water").spec
+    step = DecisionStep(policy, "find_water", spec)
+    return ControlCore(Fleet(MARKERS, lost_s=0.5), step, clock, TIMING)
+
+
+def scene(
+    t_ns: int, cells: Mapping[int, tuple[int, int]], static: Mapping = STATIC, index: int = 0
+) -> Scene:
+    """A frame at ``t_ns`` showing marker -> cell."""
+    cars = {
+        m: CarSighting(m, cell, (0.0, 0.0), 0.0, (0.0, 0.0), min(cell) >= 0 and max(cell) < 9)
+        for m, cell in cells.items()
+    }
+    return Scene(t_ns, index, True, cars, dict(static), 0)
+
+
+def all_acked(
+    commands: Mapping[int, int], decided_ns: int, missed: Iterable[int] = ()
+) -> DispatchReport:
+    """What the link reports when every car but ``missed`` accepted its command in 1 ms."""
+    reports = {}
+    for car, action in commands.items():
+        r = CommandReport(car, action, attempts=1, first_sent_ns=decided_ns)
+        if car not in missed:
+            r.acked, r.acked_ns, r.car_received_ns, r.result = (
+                True,
+                decided_ns + MS,
+                decided_ns + MS // 2,
+                "accepted",
+            )
+            r.car_deadline_us, r.car_rx_us = 10_000, 500
+        reports[car] = r
+    report = DispatchReport(decided_ns, decided_ns + 10 * MS, reports)
+    report.on_time = sum(r.acked for r in reports.values())
+    report.missed = len(reports) - report.on_time
+    return report
+
+
+def step(core: ControlCore, clock: Clock, state: FleetState, missed: Iterable[int] = ()) -> dict:
+    """Decide on ``state`` now, dispatch as the link would, and start waiting for the moves."""
+    state_ns = clock.ns
+    clock.ns += MS  # the decision takes a millisecond
+    decision, commands, decided_ns = core.commands_for(state, state_ns)
+    assert decided_ns == clock.ns
+    record = core.dispatched(
+        state, decision, commands, all_acked(commands, decided_ns, missed), state_ns
+    )
+    clock.ns += MS
+    core.wait_for_moves(clock.ns)
+    return record
+
+
+def done(_car: int) -> bool:
+    return True
+
+
+def busy(_car: int) -> bool:
+    return False
+
+
+TWO = {11: (8, 1), 12: (8, 5)}  # cars 1 and 2, by marker
+
+
+def see(
+    core: ControlCore,
+    clock: Clock,
+    at_ms: int,
+    cells: Mapping[int, tuple[int, int]],
+    ready: set[int],
+    captured_ms: int | None = None,
+) -> Scene:
+    """At ``at_ms``, the scene of a frame captured at ``captured_ms`` (default: then) folded
+    into the core with the link's ``ready`` cars."""
+    clock.ns = at_ms * MS
+    frame = scene((at_ms if captured_ms is None else captured_ms) * MS, cells)
+    core.see(frame, ready=ready, now=clock.ns)
+    return frame
+
+
+def first_step(
+    core: ControlCore, clock: Clock, cells: Mapping = TWO, missed: Iterable[int] = ()
+) -> dict:
+    """Every car of ``cells`` joined and seen at 0 ms, and the first step dispatched."""
+    frame = see(core, clock, 0, cells, ready={MARKER_CAR[m] for m in cells})
+    return step(core, clock, core.due(frame, done, clock.ns), missed)
+
+
+def test_a_car_that_joins_and_is_seen_is_decided_for_as_new(
+    core: ControlCore, clock: Clock
+) -> None:
+    frame = scene(0, TWO)
+    change = core.see(frame, ready={1}, now=0)
+    assert change.joined == [1]  # car 2 is seen but has not joined over the link
+    state = core.due(frame, done, 0)
+    assert state is not None and state.slots == {1: 0} and state.fresh == {1}
+    assert state.cells == {1: (8, 1)} and state.others == [(8, 5)]  # car 2 blocks a cell
+    record = step(core, clock, state)
+    assert record["fresh"] == [1] and record["cars"] == 1 and set(record["commands"]) == {"1"}
+    assert record["outcomes"] == {"1": "on_time"}
+    # car 2 joins: it takes the next slot with fresh memory, car 1 is no longer new
+    frame = scene(300 * MS, TWO)
+    assert core.see(frame, ready={1, 2}, now=300 * MS).joined == [2]
+    state = core.due(frame, done, 300 * MS)
+    assert state is not None and state.slots == {1: 0, 2: 1} and state.fresh == {2}
+    assert step(core, clock, state)["fresh"] == [2]
+
+
+def test_a_car_the_link_drops_leaves_and_its_last_command_is_forgotten(
+    core: ControlCore, clock: Clock
+) -> None:
+    first_step(core, clock)
+    assert set(core.fleet.command) == {1, 2}
+    frame = scene(300 * MS, TWO)
+    change = core.see(frame, ready={1}, now=300 * MS)  # LEAVE, reboot or silence
+    assert change.left == [2] and set(core.fleet.command) == {1}
+    state = core.due(frame, done, 300 * MS)
+    assert state.slots == {1: 0} and state.others == [(8, 5)]  # now a thing the edge does not drive
+    assert set(step(core, clock, state)["commands"]) == {"1"}
+
+
+def test_a_car_the_camera_misses_is_waited_for_then_judged_on_its_last_cell_then_lost(
+    core: ControlCore, clock: Clock
+) -> None:
+    first_step(core, clock)
+    missing = see(core, clock, 200, {11: (7, 1)}, ready={1, 2})
+    assert core.due(missing, done, clock.ns) is None  # moves finished now: wait for car 2
+    missing = see(core, clock, 250, {11: (7, 1)}, ready={1, 2})
+    assert core.due(missing, done, clock.ns) is None  # within the grace
+    missing = see(core, clock, 310, {11: (7, 1)}, ready={1, 2})
+    state = core.due(missing, done, clock.ns)  # grace over: decided on its last cell
+    assert state is not None and state.cells == {1: (7, 1), 2: (8, 5)}
+    step(core, clock, state)
+    clock.ns += 500 * MS  # unseen for longer than lost_s: it leaves the fleet
+    change = core.see(scene(clock.ns, {11: (7, 1)}), ready={1, 2}, now=clock.ns)
+    assert change.left == [2] and set(core.fleet.slot) == {1}
+
+
+def test_stale_frames_decide_nothing(core: ControlCore, clock: Clock) -> None:
+    first_step(core, clock, {11: (8, 1)})
+    # the moves end at 200 ms; a frame captured before that still shows them under way
+    early = see(core, clock, 200, {11: (8, 1)}, ready={1}, captured_ms=190)
+    assert core.due(early, done, clock.ns) is None
+    later = see(core, clock, 215, {11: (7, 1)}, ready={1}, captured_ms=210)
+    assert core.due(later, done, clock.ns).cells == {1: (7, 1)}
+    # a new episode: frames captured before it are not even analysed
+    core.new_episode(300 * MS)
+    assert not core.wants(299 * MS) and core.wants(300 * MS)
+    assert core.fleet.slot == {} and core.policy_step.t == 0
+
+
+def test_when_the_step_period_runs_out_moving_cars_wait_and_missed_commands_are_reported(
+    core: ControlCore, clock: Clock
+) -> None:
+    first = first_step(core, clock, missed={2})
+    assert first["outcomes"] == {"1": "on_time", "2": "missed"} and first["missed"] == 1
+    assert first["commands_to_received_ns"] is None  # not every car received its command
+    assert first["state_to_commands_ns"] == MS
+    car1_doing = int(first["commands"]["1"])
+
+    def only_2_done(car: int) -> bool:
+        return car == 2
+
+    frame = see(core, clock, 500, TWO, ready={1, 2})
+    assert core.due(frame, only_2_done, clock.ns) is None  # car 1 is still in its move
+    frame = see(core, clock, 1010, TWO, ready={1, 2})  # the step period ran out
+    state = core.due(frame, only_2_done, clock.ns)
+    assert state is not None and dict(state.moving) == {1: car1_doing}
+    record = step(core, clock, state)
+    assert record["commands"]["1"] == WAIT  # told to wait; its move's destination is held
+
+
+def test_the_safety_filter_vetoes_a_move_into_a_cell_something_else_holds(
+    core: ControlCore, clock: Clock
+) -> None:
+    # car 1 stands in the bottom-left corner, things the edge does not drive on both its
+    # neighbours: the policy (which does not see them) moves, the filter says no
+    frame = see(core, clock, 0, {11: (8, 0), 20: (7, 0), 21: (8, 1)}, ready={1})
+    state = core.due(frame, done, 0)
+    assert sorted(state.others) == [(7, 0), (8, 1)]
+    decision, commands, _ = core.commands_for(state, 0)
+    assert decision.actions[0] != WAIT  # the policy wanted a move ...
+    assert commands == {1: WAIT} and decision.blocked == 1  # ... and it was held back
+
+
+def test_an_emergency_stop_ends_the_steps(core: ControlCore, clock: Clock) -> None:
+    frame = see(core, clock, 0, {11: (8, 1)}, ready={1})
+    assert core.due(frame, done, 0) is not None
+    core.emergency_stop()
+    frame = see(core, clock, 5000, {11: (8, 1)}, ready={1})
+    assert core.due(frame, done, clock.ns) is None
+    assert core.due(frame, busy, clock.ns) is None  # not even when the period ran out
+
+
+def test_the_last_step_is_credited_only_from_a_frame_that_shows_every_car(
+    core: ControlCore, clock: Clock
+) -> None:
+    first_step(core, clock, {11: (1, 1), 12: (8, 5)})
+    assert core.credit_last_step(scene(clock.ns, {11: (0, 1)})) is None
+    rewards = core.credit_last_step(scene(clock.ns, {11: (1, 1), 12: (8, 5)}))
+    assert rewards.tolist() == [1.0, 0.0]  # car 1 ended in front of a water source
+    assert core.policy_step.returns == {1: 1.0, 2: 0.0}
