@@ -113,7 +113,7 @@ def simulate(task: str, model: Path, episodes: Sequence[Episode], steps: int) ->
     policy = OnnxPolicy(model)
     scores = []
     for episode in episodes:
-        arena = episode_arena(task, episode)
+        arena = episode_arena(task, episode, steps)
         policy.reset(arena.slots)
         fresh = np.ones(arena.slots, bool)
         for _ in range(steps):

@@ -91,12 +91,14 @@ def plan(
         yield Episode(n, m, seed + i)
 
 
-def episode_arena(task: str, episode: Episode) -> ArenaBatch:
-    """The simulated arena of ``episode`` after its reset: layout and start cells."""
+def episode_arena(task: str, episode: Episode, steps: int = 50) -> ArenaBatch:
+    """The simulated arena of ``episode`` after its reset: layout and start cells; its episode
+    lasts ``steps`` decisions (the HIL run's ``--episode-steps``)."""
     config = ArenaConfig(
         task=task,
         agents=(episode.agents, episode.agents),
         obstacles=(episode.obstacles, episode.obstacles),
+        max_steps=steps,
     )
     arena = ArenaBatch(config, 1, seed=episode.seed)
     arena.reset()

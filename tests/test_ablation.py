@@ -186,6 +186,10 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
     assert "R² shuffled message" in report
     out = _run(str(BIN / "udan-export"), ckpt, "-o", str(tmp_path / "policy.onnx"))
     assert out.returncode == 0, out.stdout + out.stderr
+    assert "verdict: PASS" in out.stdout
+    # its observation is not the cars' one: the edge refuses it in one line
+    edge = _run(str(BIN / "udan-edge"), "--sim", "--model", str(tmp_path / "policy.onnx"))
+    assert edge.returncode == 2 and "not an arena task the cars can play" in edge.stderr
     curves = _run(
         str(BIN / "udan-eval"),
         "--curves",
