@@ -1,7 +1,7 @@
 """Decision latency of the edge: state -> all commands ready (masking, grouping, inference, safety).
 
-The edge's own :class:`edge.decide.DecisionStep` with the bundled find_water policy, fed the cells
-an arena episode would show the camera, and the world stepped with the commands it returns (so
+The edge's own :class:`udan.edge.decide.DecisionStep` with the bundled find_water policy, fed the
+cells an arena episode would show the camera, and the world stepped with the commands it returns (so
 the groups, joins and recurrent state evolve as on cars); also split into the steps that form
 groups (two graph calls, every ``group_interval`` steps) and those that keep them. Two sizes: the
 9x9 arena with 5 cars, and 1,000 simulated agents on a 100x100 surround arena (the same network;
@@ -9,7 +9,7 @@ the observation only normalises row and column by the larger grid). One onnxrunt
 The steps come one right after another (warm caches); for 5 cars also after 50 ms of sleep
 each, as on cars, plain and with the runtime's rehearsal (``decision_ms_after_idle``).
 Garbage is collected as the runtime does: frozen at start, then between steps, never inside
-one (:mod:`edge.pauses`). Prints one JSON object.
+one (:mod:`udan.edge.pauses`). Prints one JSON object.
 """
 
 from __future__ import annotations
@@ -19,20 +19,20 @@ import json
 import os
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 
-from edge.decide import DecisionStep
-from edge.fleet import FleetState
-from edge.pauses import collect_between_steps, freeze_garbage
-from export.runtime import OnnxPolicy
+from udan.edge.decide import DecisionStep
+from udan.edge.fleet import FleetState
+from udan.edge.pauses import collect_between_steps, freeze_garbage
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.rules import OBSTACLE, WALL, WATER
+from udan.export.runtime import OnnxPolicy
+from udan.models import bundled_policy
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+MODEL = bundled_policy()
 TARGETS_P99_MS = {5: 0.5, 1000: 10.0}
 KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
 IDLE_S = 0.05  # between decisions in the after-idle case

@@ -25,8 +25,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from edge.link import CarLink, DispatchReport
-from edge.transport import open_transport
+from udan.edge.link import CarLink, DispatchReport
+from udan.edge.transport import open_transport
 from udan.fleetfile import load_fleet
 
 CARS = 5

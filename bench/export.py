@@ -20,12 +20,12 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 import onnx  # noqa: E402
 import torch  # noqa: E402
 
-from export.bench import bench  # noqa: E402
-from export.cli import sha256  # noqa: E402
-from export.graph import build_graph  # noqa: E402
-from export.metadata import build_metadata  # noqa: E402
-from export.verify import verify  # noqa: E402
 from udan.checkpoint import load_model  # noqa: E402
+from udan.export.bench import bench  # noqa: E402
+from udan.export.cli import sha256  # noqa: E402
+from udan.export.graph import build_graph  # noqa: E402
+from udan.export.metadata import build_metadata  # noqa: E402
+from udan.export.verify import verify  # noqa: E402
 from udan.train import TrainConfig, train  # noqa: E402
 
 MODEL = Path(__file__).resolve().parent.parent / "models" / "find_water" / "checkpoint.pt"

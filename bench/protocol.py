@@ -1,10 +1,10 @@
 """Protocol benchmark: a fuzz round through both cores, and one mock car process's ack latency.
 
 Prints one JSON object. Fuzz: 1,000,000 inputs (random bytes and mutations of genuine frames of
-every type, both directions), each fed to the car's core (``firmware_mock.core``) and to the
-edge's core (``edge.protocol``); an exception escaping is a crash, an input that is not a genuine
-frame byte for byte but is accepted is a forgery. Latency: ``udan-firmware-mock`` with one car
-as a separate process, the edge side in this process on a plain UDP socket, round trip from
+every type, both directions), each fed to the car's core (``udan.firmware_mock.core``) and to the
+edge's core (``udan.edge.protocol``); an exception escaping is a crash, an input that is not a
+genuine frame byte for byte but is accepted is a forgery. Latency: ``udan-firmware-mock`` with
+one car as a separate process, the edge side in this process on a plain UDP socket, round trip from
 sending a command to receiving its ack, over 2000 commands after a warm-up.
 """
 
@@ -22,8 +22,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from edge import protocol as ep
-from firmware_mock.core import CarCore, Telemetry
+from udan.edge import protocol as ep
+from udan.firmware_mock.core import CarCore, Telemetry
 
 FUZZ_INPUTS = 1_000_000
 LATENCY_COMMANDS = 2000
@@ -135,7 +135,15 @@ def ack_latency(commands: int, warmup: int) -> dict[str, object]:
         fleet = Path(tmp) / "fleet.toml"
         fleet.write_text(f'[[car]]\nid = 1\nmarker = 1\nport = 0\nkey = "{KEY.hex()}"\n')
         edge_addr = f"127.0.0.1:{sock.getsockname()[1]}"
-        cmd = [sys.executable, "-m", "firmware_mock.cli", "--keys", str(fleet), "--edge", edge_addr]
+        cmd = [
+            sys.executable,
+            "-m",
+            "udan.firmware_mock.cli",
+            "--keys",
+            str(fleet),
+            "--edge",
+            edge_addr,
+        ]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         try:
             assert proc.stdout is not None

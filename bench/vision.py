@@ -25,11 +25,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2
 import numpy as np
 
-from edge.calibration import CameraCalibration, save_calibration
-from edge.camera import Frame
-from edge.geometry import ArenaGeometry
-from edge.vision import Vision
-from hil.render import CameraModel, Renderer
+from udan.edge.calibration import CameraCalibration, save_calibration
+from udan.edge.camera import Frame
+from udan.edge.geometry import ArenaGeometry
+from udan.edge.vision import Vision
+from udan.hil.render import CameraModel, Renderer
 
 TARGET_P99_MS = 5.0
 FRAMES_PER_CELL = 8

@@ -357,10 +357,10 @@ class VirtualSource(CameraSource):
 
 # -- registry ---------------------------------------------------------------------------------
 _SOURCES: dict[str, str] = {
-    "device": "edge.camera:DeviceSource",
-    "video": "edge.camera:VideoFileSource",
-    "folder": "edge.camera:FolderSource",
-    "virtual": "edge.camera:VirtualSource",
+    "device": "udan.edge.camera:DeviceSource",
+    "video": "udan.edge.camera:VideoFileSource",
+    "folder": "udan.edge.camera:FolderSource",
+    "virtual": "udan.edge.camera:VirtualSource",
 }
 _URL = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://(.*)$")
 

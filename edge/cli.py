@@ -3,7 +3,7 @@
     udan-edge --camera /dev/video0 --model policy.onnx --fleet fleet.toml [--transport udp]
     udan-edge --sim [--cars 5] [--duration 30]      # virtual camera + mock fleet, bundled policy
 
-``--sim`` starts the HIL world (``python -m hil.world``: simulated arena, mock cars on loopback
+``--sim`` starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback
 UDP, the virtual camera) as its own process and drives it with this same runtime; the edge
 never imports it. Bad input — a missing or corrupt model, a camera that cannot be opened, a
 malformed fleet file, a transport that cannot be bound — is one line on stderr and exit code 2.
@@ -25,25 +25,25 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from edge.calibration import VisionError
-from edge.camera import CameraError, FrameGrabber, open_camera
-from edge.core import ControlCore
-from edge.decide import DecisionStep, TaskError, task_of
-from edge.episodes import EpisodePlan, EpisodePlayer, WorldError
-from edge.fleet import Fleet
-from edge.geometry import ArenaGeometry
-from edge.link import CarLink
-from edge.pauses import freeze_garbage, run_realtime, scheduler
-from edge.shell import EdgeShell, LoopConfig
-from edge.telemetry import Telemetry
-from edge.transport import TransportError, free_udp_port, host_port, open_transport
-from edge.vision import Vision
-from export.metadata import MetadataError, obs_spec
+from udan.edge.calibration import VisionError
+from udan.edge.camera import CameraError, FrameGrabber, open_camera
+from udan.edge.core import ControlCore
+from udan.edge.decide import DecisionStep, TaskError, task_of
+from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
+from udan.edge.fleet import Fleet
+from udan.edge.geometry import ArenaGeometry
+from udan.edge.link import CarLink
+from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
+from udan.edge.shell import EdgeShell, LoopConfig
+from udan.edge.telemetry import Telemetry
+from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
+from udan.edge.vision import Vision
 from udan.envs.errors import OneLineParser
+from udan.export.metadata import MetadataError, obs_spec
 from udan.fleetfile import FleetFileError, load_fleet, write_fleet
+from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-edge"
-BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
 SIM_MARKER_BASE = 10
 
 
@@ -89,8 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     src = p.add_argument_group("what to drive")
     src.add_argument("--sim", action="store_true", help="virtual camera + mock fleet (HIL world)")
     src.add_argument("--camera", help="/dev/videoN, an index, a video file, a folder, virtual://N")
-    src.add_argument("--model", type=Path, help=f"exported policy (default: {BUNDLED_MODEL.name} "
-                     "of models/find_water with --sim)")  # fmt: skip
+    src.add_argument("--model", type=Path, help="exported policy (default with --sim: the bundled "
+                     f"{DEFAULT_POLICY} policy)")  # fmt: skip
     src.add_argument("--fleet", type=Path, help="fleet.toml: car id, marker, address, key")
     src.add_argument("--calibration", help="OpenCV camera calibration YAML (undistortion)")
     link = p.add_argument_group("link to the cars")
@@ -129,7 +129,7 @@ def _writable(path: Path | None, what: str) -> None:
 
 def load_policy(path: Path, geometry: ArenaGeometry) -> tuple[Any, DecisionStep]:
     """The ONNX policy and its decision step; refuses a model the edge cannot drive cars with."""
-    from export.runtime import OnnxPolicy
+    from udan.export.runtime import OnnxPolicy
 
     if not path.is_file():
         raise UsageError(f"model {path}: no such file")
@@ -186,9 +186,9 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
 
 
 def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
-    """``python -m hil.world`` as its own process; returns it and its ready line."""
+    """``python -m udan.hil.world`` as its own process; returns it and its ready line."""
     cmd = [
-        sys.executable, "-m", "hil.world",
+        sys.executable, "-m", "udan.hil.world",
         "--fleet", str(fleet), "--edge", edge, "--camera-name", camera,
         "--agents", f"1-{args.cars}", "--obstacles", args.obstacles, "--seed", str(args.seed),
         "--cell-time-ms", str(args.cell_time_ms),
@@ -228,7 +228,7 @@ def _stop_world(proc: subprocess.Popen) -> str | None:
 async def _sim(args: argparse.Namespace) -> dict[str, Any]:
     if not 1 <= args.cars <= 5:
         raise UsageError(f"--cars {args.cars}: the arena plays 1-5 cars")
-    args.model = args.model or BUNDLED_MODEL
+    args.model = args.model or bundled_policy()
     with tempfile.TemporaryDirectory(prefix="udan-sim-") as tmp:
         args.fleet = write_fleet(Path(tmp) / "fleet.toml", args.cars, SIM_MARKER_BASE)
         port = free_udp_port()

@@ -1,7 +1,7 @@
 """The control core: what the camera saw, the cars' progress and the clock in; steps out.
 
 Sans-I/O, in the manner of aioquic: no socket, no sleep, no thread and no global time. The
-caller (the asyncio shell, :mod:`edge.shell`, or a test) feeds each analysed frame
+caller (the asyncio shell, :mod:`udan.edge.shell`, or a test) feeds each analysed frame
 (:meth:`ControlCore.see`) with the cars the link has ready and the time, asks whether a step is
 due (:meth:`ControlCore.due`, with the link's "has this car finished its move"), has it decided
 (:meth:`ControlCore.commands_for`), sends the commands itself, and hands back what became of them
@@ -23,12 +23,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from edge.decide import Decision, DecisionStep
-from edge.fleet import Cell, Change, Fleet, FleetState
+from udan.edge.decide import Decision, DecisionStep
+from udan.edge.fleet import Cell, Change, Fleet, FleetState
 
 if TYPE_CHECKING:  # data the core reads; it runs neither the link nor the vision
-    from edge.link import CommandReport, DispatchReport
-    from edge.vision import Scene
+    from udan.edge.link import CommandReport, DispatchReport
+    from udan.edge.vision import Scene
 
 #: Rehearse only when the last decision took less than this. A rehearsal runs while the frame
 #: is analysed but can hold up its scene by its own length; a decision this long is arithmetic
@@ -108,7 +108,7 @@ class ControlCore:
     def warm_up(self, finished: Callable[[int], bool]) -> None:
         """While a frame is analysed: if it may be the deciding one (every car finished its
         move) and the last decision was short, rehearse the step (caches warmed; see
-        :meth:`edge.decide.DecisionStep.rehearse`)."""
+        :meth:`udan.edge.decide.DecisionStep.rehearse`)."""
         if (
             self._last_decision_ns < REHEARSE_UNDER_NS
             and bool(self.fleet.slot)

@@ -5,7 +5,7 @@ The masking is the training code itself: the static layout comes from the cell m
 :func:`udan.envs.arena.scene_codes` + :func:`udan.envs.observe.observe` build each car's
 observation exactly as the arena does, with its last action and last reward
 (:func:`udan.envs.arena.task_rewards` on the cells the camera sees), so a policy gets the same
-numbers on cars as in simulation. Grouping and inference are :class:`export.runtime.OnnxPolicy`
+numbers on cars as in simulation. Grouping and inference are :class:`udan.export.runtime.OnnxPolicy`
 (numpy grouping, one onnxruntime graph), keyed by the fleet's slots.
 """
 
@@ -18,12 +18,12 @@ from itertools import chain
 
 import numpy as np
 
-from edge.fleet import FleetState
-from edge.safety import Filtered, filter_moves
-from export.runtime import OnnxPolicy
+from udan.edge.fleet import FleetState
+from udan.edge.safety import Filtered, filter_moves
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
 from udan.envs.observe import ObsSpec, observe
 from udan.envs.rules import ACTION_DELTAS, OBSTACLE, WAIT, WALL, WATER
+from udan.export.runtime import OnnxPolicy
 
 _KIND_CODES = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
 TASKS = ("find_water", "surround")
@@ -159,7 +159,7 @@ class DecisionStep:
         static: Mapping[str, frozenset[tuple[int, int]]] | None = None,
     ) -> bool:
         """The last step's masking, policy work and safety filter once more, keeping nothing a
-        decision reads (:meth:`export.runtime.OnnxPolicy.rehearse`); given ``slots``,
+        decision reads (:meth:`udan.export.runtime.OnnxPolicy.rehearse`); given ``slots``,
         ``cells_of`` and ``static``, those instead: the step a new episode's fleet would make
         from where it stands. The runtime calls it while the frame it will decide on is being
         analysed: a decision after ~50 ms of idling or of OpenCV work takes ~3x as long as one

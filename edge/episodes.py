@@ -6,8 +6,8 @@ episode's cars are in the fleet and the vision has swept the whole new layout on
 ``steps`` decisions, lets the last moves finish, credits the last step's rewards from one more
 frame, and records the returns (the score table the HIL compares with the pure simulation).
 
-The player drives an :class:`edge.shell.EdgeShell` through its public loop (``next_scene``,
-``drive``) and its :class:`edge.core.ControlCore`; the shell knows nothing of episodes.
+The player drives an :class:`udan.edge.shell.EdgeShell` through its public loop (``next_scene``,
+``drive``) and its :class:`udan.edge.core.ControlCore`; the shell knows nothing of episodes.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from edge.shell import EdgeShell
+    from udan.edge.shell import EdgeShell
 
 
 class WorldError(RuntimeError):

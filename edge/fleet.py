@@ -12,9 +12,9 @@ joined, slots that were freed) is kept until :meth:`Fleet.stepped`. The number o
 from one step to the next without a pause.
 
 :class:`Fleet` is the one owner of the edge's per-car state between steps (the link keeps only
-each car's protocol session; the policy's per-slot memory lives in :mod:`edge.decide`, indexed by
-the slots given here). Each step reads a :class:`FleetState` snapshot of it: masking, grouping,
-the safety filter, dispatch and telemetry all see the same cars, cells and slots.
+each car's protocol session; the policy's per-slot memory lives in :mod:`udan.edge.decide`,
+indexed by the slots given here). Each step reads a :class:`FleetState` snapshot of it: masking,
+grouping, the safety filter, dispatch and telemetry all see the same cars, cells and slots.
 """
 
 from __future__ import annotations

@@ -27,8 +27,8 @@ from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from edge import protocol as ep
-from edge.transport import Transport, TransportError
+from udan.edge import protocol as ep
+from udan.edge.transport import Transport, TransportError
 from udan.fleetfile import CarEntry
 
 RETRY_NS = 2_000_000  # resend an unacked command after this long (loopback rtt is ~0.3 ms)

@@ -21,7 +21,7 @@ import numpy as np
 
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT, in_bounds, resolve_few, resolve_moves
 
-STOP = 5  # edge.protocol.Action.STOP: halt the motors
+STOP = 5  # udan.edge.protocol.Action.STOP: halt the motors
 FEW_CARS = 24
 """Fleets up to this size are filtered in plain Python: cheaper than numpy's per-call cost."""
 _DELTAS = [tuple(delta) for delta in ACTION_DELTAS.tolist()]  # (d_row, d_col) per action

@@ -1,12 +1,12 @@
-"""The asyncio shell around the control core (:mod:`edge.core`): frames in, commands out.
+"""The asyncio shell around the control core (:mod:`udan.edge.core`): frames in, commands out.
 
 The shell does the I/O and the timing tricks (rehearsal while a frame is analysed, garbage
 collection between steps); the core decides what happens. One asyncio loop. Capture runs in its
-own thread (:class:`edge.camera.FrameGrabber`, newest frame wins) and vision in a worker thread
+own thread (:class:`udan.edge.camera.FrameGrabber`, newest frame wins) and vision in a worker thread
 (OpenCV releases the GIL), so the dispatcher's retransmission timers keep running while a frame
 is analysed.
 
-When a decision step happens is the core's rule (:class:`edge.core.ControlCore`). All commands
+When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`). All commands
 of a step leave at once, each valid until the decision + 10 ms.
 
 Whatever ends the run — its duration, Ctrl-C, SIGTERM, the end of a video, or an exception — the
@@ -24,13 +24,13 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
-from edge.camera import Frame, FrameGrabber, yield_to_dispatch
-from edge.core import ControlCore, StepTiming
-from edge.fleet import FleetState
-from edge.link import CarLink
-from edge.pauses import collect_between_steps
-from edge.telemetry import Telemetry
-from edge.vision import Scene, Vision
+from udan.edge.camera import Frame, FrameGrabber, yield_to_dispatch
+from udan.edge.core import ControlCore, StepTiming
+from udan.edge.fleet import FleetState
+from udan.edge.link import CarLink
+from udan.edge.pauses import collect_between_steps
+from udan.edge.telemetry import Telemetry
+from udan.edge.vision import Scene, Vision
 
 ESTOP_GRACE_S = 0.05
 #: With no step for this long, collect anyway.
@@ -88,7 +88,7 @@ class EdgeShell:
         self, play: Callable[[EdgeShell], Awaitable[object]] | None = None
     ) -> dict[str, Any]:
         """Drive until the duration, a signal, the end of the camera or of ``play`` (which
-        drives the shell its own way: :class:`edge.episodes.EpisodePlayer`); emergency-stop
+        drives the shell its own way: :class:`udan.edge.episodes.EpisodePlayer`); emergency-stop
         every car on the way out, whatever happened; return the report. The link is started
         (and closed) by the caller, so a car can be told the edge's address before the run."""
         loop = asyncio.get_running_loop()

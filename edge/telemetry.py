@@ -1,6 +1,6 @@
 """What the runtime measured: spans per frame and per step, counts, a live line, a report.
 
-Spans of the timing model (DESIGN.md), in the edge's monotonic clock (the cars' receive times
+Spans of the timing model (docs/timing.md), in the edge's monotonic clock (the cars' receive times
 come back converted to it, and on one machine every process shares it):
 
 - ``frame_to_state``: camera capture -> cars' cells known (vision + fleet update);

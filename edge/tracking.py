@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from edge.detect import THRESHOLD_WINDOW, MarkerDetector, shape_of
-from edge.geometry import RESERVED_IDS, TARGET_ID
+from udan.edge.detect import THRESHOLD_WINDOW, MarkerDetector, shape_of
+from udan.edge.geometry import RESERVED_IDS, TARGET_ID
 
 SIZE_GROUP = 1.15
 """Cars whose markers' contour lengths are within this ratio are searched in one call; a wider

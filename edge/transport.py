@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any, ClassVar
 
-from edge.protocol import CAN_CAR_BASE, CAN_MAX_CAR, FrameError, can_pack, can_unpack
+from udan.edge.protocol import CAN_CAR_BASE, CAN_MAX_CAR, FrameError, can_pack, can_unpack
 from udan.fleetfile import CarEntry
 
 FrameHandler = Callable[[bytes], None]

@@ -5,12 +5,12 @@ costs 11-34 ms there, so no frame runs one. ArUco's cost is mostly per call and 
 quadrilateral it must decode, not per pixel, so the scheme calls it on small images that hold
 few candidates. This module puts the stages together (and sweeps); each concern has its own:
 
-- Detection (:mod:`edge.detect`): one ArUco detector, called on windows at the search
+- Detection (:mod:`udan.edge.detect`): one ArUco detector, called on windows at the search
   resolution (half size for a 1200-line frame), a full-resolution second chance for small
   markers. Corners are refined on the contour (CORNER_REFINE_CONTOUR): at half size that is
   accurate enough for 2 cm and a few degrees, where cornerSubPix gets pulled off the corners of
   small markers by their inner pattern.
-- Tracking (:mod:`edge.tracking`): a known car is looked for only in a window around where its
+- Tracking (:mod:`udan.edge.tracking`): a known car is looked for only in a window around where its
   last sighting and velocity put it; the windows of cars of similar apparent size are stacked
   into one image and searched in one call.
 - The rest of the image is swept one tile per frame (4 x 3 tiles overlapping by more than a
@@ -19,7 +19,7 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   sweep decodes only what is new: a car that joined or that its track lost, a changed cell, a
   calibration marker after a camera move. A sweep takes 12 frames (300 ms at 40 FPS): that is
   how long a new car or a changed obstacle takes to appear; tracked cars do not wait for it.
-- Geometry (:mod:`edge.calibration`): a homography (undistorted image pixels -> arena metres)
+- Geometry (:mod:`udan.edge.calibration`): a homography (undistorted image pixels -> arena metres)
   fitted to the corners of the calibration markers, averaged over sightings. One of them is
   re-checked every frame where it was last seen; shifted by more than `move_tolerance_px`, the
   camera has moved: the fit and the cell readings are dropped and the scene says it is
@@ -42,11 +42,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from edge.calibration import ArenaFit, VisionError, load_calibration
-from edge.camera import Frame
-from edge.detect import MIN_CONTOUR, THRESHOLD_WINDOW, MarkerDetector, shape_of
-from edge.geometry import CELL_KIND_IDS, CORNER_IDS, TARGET_ID, ArenaGeometry, heading_of
-from edge.tracking import CarTracker
+from udan.edge.calibration import ArenaFit, VisionError, load_calibration
+from udan.edge.camera import Frame
+from udan.edge.detect import MIN_CONTOUR, THRESHOLD_WINDOW, MarkerDetector, shape_of
+from udan.edge.geometry import CELL_KIND_IDS, CORNER_IDS, TARGET_ID, ArenaGeometry, heading_of
+from udan.edge.tracking import CarTracker
 
 MASK = 1.15
 """Known markers are painted out of the sweep image over this many times their size, with the
@@ -297,7 +297,7 @@ class Vision:
         return {}
 
     def _observe_corner(self, marker: int, corners: np.ndarray) -> bool:
-        """A calibration marker seen (:meth:`edge.calibration.ArenaFit.observe`); if the camera
+        """A calibration marker seen (:meth:`udan.edge.calibration.ArenaFit.observe`); if the camera
         has moved, everything measured through the old fit goes too. Returns whether the set
         of markers to fit changed."""
         changed, moved = self.fit.observe(marker, corners)

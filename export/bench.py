@@ -3,11 +3,11 @@
 Two figures per fleet size N, both on one thread:
 
 - ``call``: one inference of the graph with groups in force, as :class:`OnnxPolicy` makes it
-  at a step between group formations (:class:`export.runtime.BoundGraph`: observations copied
-  into bound buffers; torch: the same computation, :func:`export.verify.torch_step`). The
+  at a step between group formations (:class:`udan.export.runtime.BoundGraph`: observations copied
+  into bound buffers; torch: the same computation, :func:`udan.export.verify.torch_step`). The
   agents with the model's top 1/k leader scores lead, so groups cover the fleet whatever the
   threshold of a barely trained model would give. The targets are on this figure.
-- ``step``: a whole decision step as the edge takes it, :class:`export.runtime.OnnxPolicy.act`
+- ``step``: a whole decision step as the edge takes it, :class:`udan.export.runtime.OnnxPolicy.act`
   vs :meth:`udan.learner.Actor.act`, over consecutive steps with groups formed every T steps
   (numpy grouping included, and the second graph call at formation steps).
 """
@@ -23,9 +23,9 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
-from export.verify import torch_step
 from udan.envs.grouping import form_groups, neighbour_table
+from udan.export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
+from udan.export.verify import torch_step
 from udan.learner import Actor, MultiAgentQ
 
 SIZES = (1, 5, 20, 64, 200, 1000)

@@ -17,17 +17,22 @@ import hashlib
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import onnx
 from google.protobuf.message import DecodeError
 from onnxruntime.capi.onnxruntime_pybind11_state import Fail, InvalidArgument, InvalidProtobuf
 
-from export.metadata import MetadataError, build_metadata, check_metadata
 from udan.envs.observe import ObsSpec
+from udan.export.metadata import MetadataError, build_metadata, check_metadata
 from udan.paths import FolderError, ensure_folder
 
-# The torch side (udan.checkpoint, export.graph, .verify, .bench) is imported by the commands
-# that use it: a mistyped path is reported in a second, not after torch has loaded.
+if TYPE_CHECKING:
+    import onnx
+
+# The torch side (udan.checkpoint, udan.export.graph, .verify, .bench) and onnx are imported by
+# the commands that use them: a mistyped path is reported in a second, not after torch has loaded,
+# and `--help` works on an install without the train extra.
+TRAIN_EXTRA = ("torch", "onnx")
 
 
 class InputError(ValueError):
@@ -72,6 +77,8 @@ def load_policy(path: Path) -> tuple[onnx.ModelProto, dict[str, str]]:
     which metadata it lacks)."""
     if not path.is_file():
         raise InputError(f"policy {path} does not exist")
+    import onnx
+
     try:
         model = onnx.load(str(path))
     except (DecodeError, OSError, ValueError) as err:
@@ -110,8 +117,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint)
     out = output_path(checkpoint, args.output)
     model, ckpt = load_model(checkpoint)
-    from export.graph import build_graph
-    from export.verify import SIZES, verify
+    from udan.export.graph import build_graph
+    from udan.export.verify import SIZES, verify
 
     meta = build_metadata(ckpt, dataclasses.asdict(model.spec), sha256(checkpoint))
     onnx_model = build_graph(model, meta)
@@ -120,6 +127,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     if not report.ok:
         print(f"verification failed: {out} not written", file=sys.stderr)
         return 1
+    import onnx
+
     onnx.save(onnx_model, str(out))
     print(f"wrote {out} ({out.stat().st_size / 1e3:.1f} kB, {ckpt['algo']}, {ckpt['env']})")
     return 0
@@ -129,7 +138,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     policy, checkpoint = Path(args.policy), Path(args.checkpoint)
     onnx_model, meta = load_policy(policy)
     model, ckpt = load_model(checkpoint)
-    from export.verify import SIZES, verify
+    from udan.export.verify import SIZES, verify
 
     obs = ckpt["obs_spec"]
     try:
@@ -162,7 +171,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"(--checkpoint; {checkpoint} is missing or another file)"
         )
     model, _ = load_model(checkpoint)
-    from export.bench import SIZES, bench
+    from udan.export.bench import SIZES, bench
 
     print(json.dumps(bench(policy, model, args.sizes or SIZES, args.repeats), indent=1))
     return 0
@@ -197,6 +206,14 @@ def main(argv: list[str] | None = None) -> int:
         return run(args)
     except (InputError, Fail, InvalidArgument, InvalidProtobuf) as err:
         print(f"udan-export: error: {str(err).strip().splitlines()[0]}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as err:
+        if err.name not in TRAIN_EXTRA:
+            raise
+        print(
+            f"udan-export: error: {command} needs {err.name}: pip install 'udan-edge[train]'",
+            file=sys.stderr,
+        )
         return 2
 
 

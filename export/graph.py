@@ -5,7 +5,8 @@ microsecond) and per ``LSTM`` op (about ten), so the graph is written with as fe
 computation allows rather than traced: Gemm layers, one ONNX ``LSTM`` op for the agents'
 memory and one per round for the group BiLSTM, a ``Loop`` over the bridge rounds, and an ``If``
 that either scores leaders or runs the Q head. That it computes what the model's own modules
-compute is checked on every export (:mod:`export.verify`). Layout and reasons: export/README.md.
+compute is checked on every export (:mod:`udan.export.verify`). Layout and reasons:
+export/README.md.
 """
 
 from __future__ import annotations

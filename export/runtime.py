@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from export.metadata import MetadataError, check_metadata
 from udan.envs.grouping import form_groups, group_rounds, neighbour_table, one_group_a_round
 from udan.envs.observe import ObsSpec
+from udan.export.metadata import MetadataError, check_metadata
 
 OUTPUTS = ("q", "action", "h_out", "c_out")
 NOT_ENCODED = np.zeros((), bool)

@@ -5,7 +5,7 @@ shape inference, every dynamic axis symbolic in the saved file (a graph with the
 count fixed would pass a parity test at that size only), and onnxruntime vs torch over several
 consecutive steps of recurrent state at many fleet sizes, with random groupings that include
 bridging and lone agents (the runtime zeroes a fresh slot's state before the graph, as
-:class:`export.runtime.OnnxPolicy` does).
+:class:`udan.export.runtime.OnnxPolicy` does).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import numpy as np
 import onnx
 import torch
 
-from export.graph import AXES
-from export.runtime import PolicyGraph, forget, no_neighbours, round_inputs
 from udan.envs.grouping import neighbour_table
+from udan.export.graph import AXES
+from udan.export.runtime import PolicyGraph, forget, no_neighbours, round_inputs
 from udan.learner import MultiAgentQ, merge_rounds
 
 SIZES = (1, 2, 3, 5, 8, 20, 64, 1000)

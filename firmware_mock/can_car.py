@@ -14,11 +14,11 @@ from typing import Any
 
 import can
 
-from firmware_mock import wire
-from firmware_mock.faults import Faults
-from firmware_mock.firmware import DEFAULT_TIMING, CarFirmware, CarTiming
-from firmware_mock.fleet import CarSpec
-from firmware_mock.motor import Drive, GridWorld, World
+from udan.firmware_mock import wire
+from udan.firmware_mock.faults import Faults
+from udan.firmware_mock.firmware import DEFAULT_TIMING, CarFirmware, CarTiming
+from udan.firmware_mock.fleet import CarSpec
+from udan.firmware_mock.motor import Drive, GridWorld, World
 
 ESTOP_BASE, EDGE_BASE, CAR_BASE = 0x080, 0x100, 0x180
 MAX_CAR_ID = 0x7F

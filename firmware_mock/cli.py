@@ -22,10 +22,10 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from firmware_mock.firmware import DEFAULT_TIMING, CarTiming
-from firmware_mock.fleet import load_fleet
-from firmware_mock.udp import MockCar
 from udan.envs.errors import OneLineParser
+from udan.firmware_mock.firmware import DEFAULT_TIMING, CarTiming
+from udan.firmware_mock.fleet import load_fleet
+from udan.firmware_mock.udp import MockCar
 from udan.fleetfile import FleetFileError
 
 PROG = "udan-firmware-mock"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
-from firmware_mock import wire
+from udan.firmware_mock import wire
 
 REJECT_REASONS = (
     "malformed",

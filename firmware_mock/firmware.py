@@ -15,11 +15,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from firmware_mock import serial_link as sl
-from firmware_mock.core import WATCHDOG_US, CarCore
-from firmware_mock.faults import Faults, LossyLink
-from firmware_mock.fleet import CarSpec
-from firmware_mock.motor import Motors
+from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock.core import WATCHDOG_US, CarCore
+from udan.firmware_mock.faults import Faults, LossyLink
+from udan.firmware_mock.fleet import CarSpec
+from udan.firmware_mock.motor import Motors
 
 
 @dataclass(frozen=True, slots=True)

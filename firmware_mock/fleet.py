@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from firmware_mock.faults import Faults
+from udan.firmware_mock.faults import Faults
 from udan.fleetfile import CarEntry, FleetFileError
 from udan.fleetfile import load_fleet as load_entries
 

@@ -21,11 +21,11 @@ from typing import Protocol
 import numpy as np
 import serial
 
-from firmware_mock import serial_link as sl
-from firmware_mock.core import Telemetry
-from firmware_mock.faults import Faults
-from firmware_mock.wire import STOP_ACTION
 from udan.envs.rules import ACTION_DELTAS, WAIT, in_bounds
+from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock.core import Telemetry
+from udan.firmware_mock.faults import Faults
+from udan.firmware_mock.wire import STOP_ACTION
 
 Pose = tuple[int, int]
 BATTERY_FULL_MV = 8200

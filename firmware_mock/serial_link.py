@@ -12,7 +12,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Collection
 
-from firmware_mock.wire import STOP_ACTION
+from udan.firmware_mock.wire import STOP_ACTION
 
 MAX_BODY = 253  # one COBS block, so a frame is never longer than 256 bytes on the line
 

@@ -13,10 +13,10 @@ from typing import Any
 
 import serial
 
-from firmware_mock.faults import Faults
-from firmware_mock.firmware import DEFAULT_TIMING, CarFirmware, CarTiming
-from firmware_mock.fleet import CarSpec
-from firmware_mock.motor import Drive, GridWorld, MotorController, SerialMotors, World
+from udan.firmware_mock.faults import Faults
+from udan.firmware_mock.firmware import DEFAULT_TIMING, CarFirmware, CarTiming
+from udan.firmware_mock.fleet import CarSpec
+from udan.firmware_mock.motor import Drive, GridWorld, MotorController, SerialMotors, World
 
 BAUD = 921_600
 

@@ -1,13 +1,13 @@
 """udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
-        --model models/find_water/policy.onnx [--faults loss=0.1,jitter=3ms] --report out/hil
+        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] --report out/hil
 
-starts the HIL world (``python -m hil.world``: simulated arena, mock cars on loopback UDP, the
+starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback UDP, the
 virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
 episodes (``--episodes`` per cell of cars x obstacles, or random ones for ``--duration``
-seconds), applies the fault spec (:mod:`hil.faults`) through the world's control port, then
-stops both and writes the report (:mod:`hil.report`): the edge's spans and deadline counts, the
+seconds), applies the fault spec (:mod:`udan.hil.faults`) through the world's control port, then
+stops both and writes the report (:mod:`udan.hil.report`): the edge's spans and deadline counts, the
 cars' own counters, the world's collisions, and the score table through the full loop beside
 the pure simulation of the same policy on the same layouts.
 
@@ -35,14 +35,15 @@ from typing import Any
 
 import numpy as np
 
-from edge import protocol as ep
-from edge.episodes import world_request
-from edge.transport import free_udp_port
-from export.runtime import OnnxPolicy
-from hil.faults import FaultPlan, FaultSpecError, parse_faults
-from hil.world import Episode, episode_arena
+from udan.edge import protocol as ep
+from udan.edge.episodes import world_request
+from udan.edge.transport import free_udp_port
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
+from udan.export.runtime import OnnxPolicy
 from udan.fleetfile import write_fleet
+from udan.hil.faults import FaultPlan, FaultSpecError, parse_faults
+from udan.hil.world import Episode, episode_arena
+from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-hil"
 TASKS = ("find_water",)
@@ -63,7 +64,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--episodes", type=int, help="episodes per (cars, obstacles) cell")
     run.add_argument("--duration", type=float, help="instead: random episodes for this long (s)")
     run.add_argument("--episode-steps", type=int, default=50)
-    run.add_argument("--model", type=Path, default=Path("models/find_water/policy.onnx"))
+    run.add_argument(
+        "--model",
+        type=Path,
+        default=bundled_policy(),
+        help=f"exported policy (default: the bundled {DEFAULT_POLICY} policy)",
+    )
     run.add_argument("--faults", default="", help="e.g. loss=0.1,jitter=3ms,reboot=car2@10s")
     run.add_argument("--report", type=Path, default=Path("out/hil"), help="report folder")
     run.add_argument("--seed", type=int, default=0)
@@ -152,7 +158,7 @@ class Loop:
     def start_world(self) -> int:
         a = self.args
         cmd = [
-            sys.executable, "-m", "hil.world", "--fleet", str(self.fleet),
+            sys.executable, "-m", "udan.hil.world", "--fleet", str(self.fleet),
             "--edge", f"127.0.0.1:{self.edge_port}", "--camera-name", self.camera,
             "--agents", f"{self.cars[0]}-{self.cars[1]}", "--obstacles", a.obstacles,
             "--seed", str(a.seed), "--cell-time-ms", str(a.cell_time_ms), "--fps", str(a.fps),
@@ -316,10 +322,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (HarnessError, FaultSpecError, EnvConfigError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
-    from hil.report import write_report
+    from udan.hil.report import can_plot, write_report
 
     episodes = [Episode(e["agents"], e["obstacles"], e["seed"]) for e in result["edge"]["episodes"]]
     sim = simulate(args.task, args.model, episodes, args.episode_steps)
     summary = write_report(args, result, sim, args.report)
+    if not can_plot():
+        print(
+            f"{PROG}: no PNGs: matplotlib is missing (pip install 'udan-edge[hil]')",
+            file=sys.stderr,
+        )
     print(json.dumps(summary["headline"], indent=1))
     return 0

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from edge.geometry import CELL_KIND_IDS, CORNER_IDS, ArenaGeometry, square
+from udan.edge.geometry import CELL_KIND_IDS, CORNER_IDS, ArenaGeometry, square
 
 FLOOR = 172.0
 GRID_LINE = 158.0

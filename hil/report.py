@@ -1,4 +1,5 @@
-"""The HIL report: ``summary.json`` plus PNGs, from what the edge, the cars and the world counted.
+"""The HIL report: ``summary.json`` plus PNGs (with matplotlib), from what the edge, the cars and
+the world counted.
 
 - ``latency.png``: histograms of the timing model's spans (edge telemetry);
 - ``misses.png``: commands per car that missed their deadline (and were retried);
@@ -9,6 +10,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -160,10 +162,17 @@ def _plot_scores(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def can_plot() -> bool:
+    """The PNGs need matplotlib (the ``hil`` and ``train`` extras); a base install, as on the
+    edge computer, still writes ``summary.json``."""
+    return importlib.util.find_spec("matplotlib") is not None
+
+
 def write_report(
     args: argparse.Namespace, result: dict[str, Any], sim: list[float], folder: Path
 ) -> dict[str, Any]:
-    """Write summary.json and the PNGs into ``folder``; returns the summary."""
+    """Write summary.json and, where :func:`can_plot`, the PNGs into ``folder``; returns the
+    summary."""
     edge, world = result["edge"], result["world"]
     rows, scores = score_table(edge["episodes"], sim)
     cars = _car_totals(world.get("cars", {}))
@@ -196,8 +205,9 @@ def write_report(
         "events": result["events"],
     }
     (folder / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
-    _plot_latency(edge, folder / "latency.png")
-    _plot_misses(edge, folder / "misses.png")
-    if rows:
-        _plot_scores(rows, folder / "scores.png")
+    if can_plot():
+        _plot_latency(edge, folder / "latency.png")
+        _plot_misses(edge, folder / "misses.png")
+        if rows:
+            _plot_scores(rows, folder / "scores.png")
     return summary

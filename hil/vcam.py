@@ -2,7 +2,7 @@
 
 Frames go through shared memory rather than a socket because a 1920x1200 frame is 2.3 MB and 40
 of them a second must not cost the renderer's process a copy per reader or a syscall per
-kilobyte; the layout and its seqlock are defined once, in `edge.camera.VcamLayout`.
+kilobyte; the layout and its seqlock are defined once, in `udan.edge.camera.VcamLayout`.
 
 Camera faults are injected here, where a real camera would have them: a frame dropped at random
 (its number is used up, so readers see the gap in `Frame.index`), and a stall during which no frame
@@ -23,7 +23,7 @@ from multiprocessing import shared_memory
 import cv2
 import numpy as np
 
-from edge.camera import VcamLayout
+from udan.edge.camera import VcamLayout
 
 
 class _Recorder:

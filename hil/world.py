@@ -1,9 +1,10 @@
-"""The simulated arena the mock cars drive in, seen by the virtual camera: ``python -m hil.world``.
+"""The simulated arena the mock cars drive in, seen by the virtual camera:
+``python -m udan.hil.world``.
 
 One process holds the world and every mock car of the fleet (each a real UDP socket, ESP8266
-mock, pty serial line and motor controller: ``firmware_mock.udp.MockCar``); it starts the virtual
-camera as a process of its own, which renders a mirror of the world at 40 FPS into shared memory
-(``virtual://NAME``).
+mock, pty serial line and motor controller: ``udan.firmware_mock.udp.MockCar``); it starts the
+virtual camera as a process of its own, which renders a mirror of the world at 40 FPS into shared
+memory (``virtual://NAME``).
 The edge runs as a separate process and sees none of this except camera frames and UDP.
 
 Where moves end is decided here (``HilWorld``, the firmware's ``World``): a car's move ends on
@@ -41,17 +42,17 @@ from typing import Any
 
 import numpy as np
 
-from edge.geometry import ArenaGeometry
-from edge.pauses import freeze_garbage
-from firmware_mock.firmware import CarTiming
-from firmware_mock.fleet import load_fleet
-from firmware_mock.udp import MockCar
-from hil.render import CameraModel, Renderer
-from hil.vcam import VirtualCamera
+from udan.edge.geometry import ArenaGeometry
+from udan.edge.pauses import freeze_garbage
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
+from udan.firmware_mock.firmware import CarTiming
+from udan.firmware_mock.fleet import load_fleet
+from udan.firmware_mock.udp import MockCar
 from udan.fleetfile import FleetFileError
+from udan.hil.render import CameraModel, Renderer
+from udan.hil.vcam import VirtualCamera
 
 PROG = "hil-world"
 Cell = tuple[int, int]
@@ -508,7 +509,7 @@ class WorldServer:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="python -m hil.world", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="python -m udan.hil.world", description=__doc__.split("\n\n")[0])
     p.add_argument("--fleet", type=Path, required=True, help="fleet.toml of the mock cars")
     p.add_argument("--edge", required=True, help="the edge's HOST:PORT (cars JOIN there)")
     p.add_argument("--camera-name", required=True, help="shared-memory name of the camera")

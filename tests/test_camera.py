@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera, shm_path
-from hil.vcam import VirtualCamera
+from udan.edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera, shm_path
+from udan.hil.vcam import VirtualCamera
 
 
 def write_images(folder, count, shape=(48, 64)):
@@ -165,7 +165,7 @@ WRITER = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from hil.vcam import VirtualCamera
+    from udan.hil.vcam import VirtualCamera
 
     name, count, period = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
     with VirtualCamera(name, 64, 48) as cam:

@@ -5,20 +5,20 @@ steps come out; no socket, no thread, no real clock. The policy is the bundled f
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 
 import pytest
 
-from edge.core import ControlCore, StepTiming
-from edge.decide import DecisionStep
-from edge.fleet import Fleet, FleetState
-from edge.link import CommandReport, DispatchReport
-from edge.vision import CarSighting, Scene
-from export.runtime import OnnxPolicy
+from udan.edge.core import ControlCore, StepTiming
+from udan.edge.decide import DecisionStep
+from udan.edge.fleet import Fleet, FleetState
+from udan.edge.link import CommandReport, DispatchReport
+from udan.edge.vision import CarSighting, Scene
 from udan.envs.arena import ArenaConfig
 from udan.envs.rules import WAIT
+from udan.export.runtime import OnnxPolicy
+from udan.models import bundled_policy
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+MODEL = bundled_policy()
 MS = 1_000_000
 MARKERS = {1: 11, 2: 12, 3: 13}
 MARKER_CAR = {m: c for c, m in MARKERS.items()}

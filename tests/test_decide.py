@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge import safety
-from edge.decide import DecisionStep, TaskError, task_of
-from edge.fleet import Fleet, FleetState
-from edge.safety import STOP, filter_moves
-from export.runtime import OnnxPolicy
+from udan.edge import safety
+from udan.edge.decide import DecisionStep, TaskError, task_of
+from udan.edge.fleet import Fleet, FleetState
+from udan.edge.safety import STOP, filter_moves
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.rules import FREE, OBSTACLE, UP, WAIT, WALL, WATER
+from udan.export.runtime import OnnxPolicy
+from udan.models import bundled_policy
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+MODEL = bundled_policy()
 
 
 # --- safety filter ------------------------------------------------------------------------------

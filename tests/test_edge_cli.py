@@ -15,13 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from edge import cli
-from edge.pauses import freeze_garbage, run_realtime, scheduler
-from edge.transport import free_udp_port
+from udan.edge import cli
+from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
+from udan.edge.transport import free_udp_port
 from udan.fleetfile import write_fleet
+from udan.models import bundled_policy
 
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
-MODEL = Path(__file__).resolve().parents[1] / "models" / "find_water" / "policy.onnx"
+MODEL = bundled_policy()
 
 
 def _realtime_permitted() -> bool:
@@ -98,7 +99,7 @@ def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Pat
     edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
     world = subprocess.Popen(
         [
-            sys.executable, "-m", "hil.world", "--fleet", str(fleet),
+            sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet),
             "--edge", f"127.0.0.1:{edge_port}", "--camera-name", camera, "--agents", "2",
             "--obstacles", "0", "--cell-time-ms", "60",
         ],

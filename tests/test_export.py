@@ -17,15 +17,15 @@ import pytest
 import torch
 from onnx import TensorProto, helper
 
-from export.cli import main, sha256
-from export.graph import build_graph
-from export.metadata import KEYS, MetadataError, build_metadata, check_metadata, obs_spec
-from export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
-from export.verify import frozen_axes, verify
 from udan.checkpoint import load_model
 from udan.envs import make_vec
 from udan.envs.grouping import neighbour_table
 from udan.envs.observe import ObsSpec
+from udan.export.cli import main, sha256
+from udan.export.graph import build_graph
+from udan.export.metadata import KEYS, MetadataError, build_metadata, check_metadata, obs_spec
+from udan.export.runtime import BoundGraph, OnnxPolicy, PolicyGraph, no_neighbours, round_inputs
+from udan.export.verify import frozen_axes, verify
 from udan.learner import ALGOS, Actor
 from udan.train import TrainConfig, train
 
@@ -287,7 +287,7 @@ def test_the_runtime_imports_and_acts_without_torch(udan_policy):
 import sys
 sys.modules["torch"] = None  # any import of torch now fails
 import numpy as np
-from export.runtime import OnnxPolicy
+from udan.export.runtime import OnnxPolicy
 policy = OnnxPolicy({str(udan_policy)!r})
 n, d = 6, int(policy.graph.metadata["obs_dim"])
 rng = np.random.default_rng(0)

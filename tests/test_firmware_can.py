@@ -10,10 +10,10 @@ from typing import Any
 import can
 import pytest
 
-from edge import protocol as ep
-from firmware_mock.can_car import CanCar
-from firmware_mock.firmware import CarTiming
-from firmware_mock.fleet import CarSpec
+from udan.edge import protocol as ep
+from udan.firmware_mock.can_car import CanCar
+from udan.firmware_mock.firmware import CarTiming
+from udan.firmware_mock.fleet import CarSpec
 
 KEYS = {3: bytes(range(9, 41)), 4: bytes(range(60, 92))}
 

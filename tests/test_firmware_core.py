@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from firmware_mock import wire
-from firmware_mock.core import DUPLICATE_CACHE, CarCore, Telemetry
+from udan.firmware_mock import wire
+from udan.firmware_mock.core import DUPLICATE_CACHE, CarCore, Telemetry
 
 KEY = bytes(range(100, 132))
 SESSION = 0xC0FFEE

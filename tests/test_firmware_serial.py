@@ -10,10 +10,10 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_mock import serial_link as sl
-from firmware_mock.faults import Faults
-from firmware_mock.motor import Drive, GridWorld, MotorController, SerialMotors
 from udan.envs.rules import DOWN, LEFT, RIGHT, UP, WAIT
+from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock.faults import Faults
+from udan.firmware_mock.motor import Drive, GridWorld, MotorController, SerialMotors
 
 
 @given(st.binary(max_size=600))

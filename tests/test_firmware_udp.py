@@ -20,17 +20,17 @@ from typing import Any
 
 import pytest
 
-from edge import protocol as ep
-from firmware_mock.cli import _parser
-from firmware_mock.firmware import CarTiming
-from firmware_mock.fleet import CarSpec
-from firmware_mock.udp import MockCar
+from udan.edge import protocol as ep
+from udan.firmware_mock.cli import _parser
+from udan.firmware_mock.firmware import CarTiming
+from udan.firmware_mock.fleet import CarSpec
+from udan.firmware_mock.udp import MockCar
 
 KEYS = {1: bytes(range(32)), 2: bytes(range(50, 82))}
 MOCK_CLI = [
     sys.executable,
     "-c",
-    "import sys; from firmware_mock.cli import main; sys.exit(main())",
+    "import sys; from udan.firmware_mock.cli import main; sys.exit(main())",
 ]
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_mock import fleet as mock_fleet
+from udan.firmware_mock import fleet as mock_fleet
 from udan.fleetfile import CarEntry, FleetFileError, load_fleet
 
 KEY1 = bytes(range(32)).hex()

@@ -25,16 +25,16 @@ from typing import Any
 import can
 import pytest
 
-from edge import protocol as ep
-from edge.link import CarLink, DispatchReport
-from edge.transport import LoopTransport, Transport, open_transport
-from firmware_mock import serial_link as sl
-from firmware_mock.can_car import CanCar
-from firmware_mock.faults import Faults
-from firmware_mock.firmware import CarFirmware, CarTiming
-from firmware_mock.fleet import CarSpec
-from firmware_mock.motor import Drive, GridWorld
+from udan.edge import protocol as ep
+from udan.edge.link import CarLink, DispatchReport
+from udan.edge.transport import LoopTransport, Transport, open_transport
 from udan.envs.rules import DOWN, LEFT, RIGHT, UP, WAIT
+from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock.can_car import CanCar
+from udan.firmware_mock.faults import Faults
+from udan.firmware_mock.firmware import CarFirmware, CarTiming
+from udan.firmware_mock.fleet import CarSpec
+from udan.firmware_mock.motor import Drive, GridWorld
 from udan.fleetfile import CarEntry, load_fleet
 
 FAST = CarTiming(cell_time_s=0.02, watchdog_s=0.3, status_period_s=0.1, join_period_s=0.1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from edge import protocol as ep
+from udan.edge import protocol as ep
 from udan.envs.rules import ACTIONS
 
 KEY = bytes(range(32))

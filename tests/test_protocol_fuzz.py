@@ -16,8 +16,8 @@ from types import ModuleType
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from edge import protocol as ep
-from firmware_mock import wire
+from udan.edge import protocol as ep
+from udan.firmware_mock import wire
 
 
 def _load_bench() -> ModuleType:

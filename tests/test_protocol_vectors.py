@@ -10,9 +10,9 @@ from pathlib import Path
 import can
 import pytest
 
-from edge import protocol as ep
-from firmware_mock import can_car, serial_link, wire
-from firmware_mock.core import CarCore, Telemetry
+from udan.edge import protocol as ep
+from udan.firmware_mock import can_car, serial_link, wire
+from udan.firmware_mock.core import CarCore, Telemetry
 
 VECTORS = json.loads((Path(__file__).parents[1] / "docs" / "protocol_vectors.json").read_text())
 KEYS = {int(k): bytes.fromhex(v) for k, v in VECTORS["keys"].items()}

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from edge.geometry import CORNER_IDS, ArenaGeometry, square
-from hil.render import CameraModel, Renderer
+from udan.edge.geometry import CORNER_IDS, ArenaGeometry, square
+from udan.hil.render import CameraModel, Renderer
 
 GEOMETRY = ArenaGeometry()
 CELLS = {"obstacle": [(2, 3)], "water": [(0, 4)], "wall": [(0, 3)], "target": [(6, 6)]}

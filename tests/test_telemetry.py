@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from edge.telemetry import Histogram, Telemetry
+from udan.edge.telemetry import Histogram, Telemetry
 
 
 def test_histogram_percentiles_within_a_bin_of_the_exact_ones() -> None:

@@ -1,7 +1,7 @@
 """The edge's transports on their own: serial codec, registry, UDP routing, pty bytes, CAN ids.
 
 The serial codec is checked against docs/protocol_vectors.json and against the mock firmware's
-independent codec (``firmware_mock.serial_link``); the end-to-end runs with cars are in
+independent codec (``udan.firmware_mock.serial_link``); the end-to-end runs with cars are in
 tests/test_link.py.
 """
 
@@ -21,8 +21,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge import transport as tr
-from firmware_mock import serial_link as sl
+from udan.edge import transport as tr
+from udan.firmware_mock import serial_link as sl
 from udan.fleetfile import CarEntry
 
 VECTORS = json.loads((Path(__file__).parent.parent / "docs/protocol_vectors.json").read_text())

@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from edge.calibration import CameraCalibration, VisionError, load_calibration, save_calibration
-from edge.camera import Frame
-from edge.geometry import CELL_KIND_IDS, ArenaGeometry
-from edge.vision import Vision
-from hil.render import CameraModel, Renderer
+from udan.edge.calibration import CameraCalibration, VisionError, load_calibration, save_calibration
+from udan.edge.camera import Frame
+from udan.edge.geometry import CELL_KIND_IDS, ArenaGeometry
+from udan.edge.vision import Vision
+from udan.hil.render import CameraModel, Renderer
 
 GEOMETRY = ArenaGeometry()
 CELL = GEOMETRY.cell_m

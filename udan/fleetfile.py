@@ -4,8 +4,8 @@ The one reader of the fleet file, in the lowest layer so that both the edge (whi
 drive) and the mock firmware (which cars it stands in for) read it with the same rules: every bad
 input is one ``FleetFileError`` whose message names the file and the car, so a command can print
 one line and exit 2 instead of showing a traceback. Mock-only fields (``start``, ``faults``) are
-kept raw in :attr:`CarEntry.mock` and checked by the mock (:mod:`firmware_mock.fleet`): a setting
-for simulated cars must not keep the edge from driving real ones.
+kept raw in :attr:`CarEntry.mock` and checked by the mock (:mod:`udan.firmware_mock.fleet`): a
+setting for simulated cars must not keep the edge from driving real ones.
 
 A car's address is ``address = "HOST:PORT"`` or ``port`` (on 127.0.0.1). A car with neither, or
 with port 0 (the mock's "any free port"), has no address until its first authenticated frame

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edge.camera import open_camera
-from edge.geometry import ArenaGeometry
-from edge.vision import Vision
-from hil.world import CameraProcess, HilWorld
+from udan.edge.camera import open_camera
+from udan.edge.geometry import ArenaGeometry
+from udan.edge.vision import Vision
 from udan.envs.rules import OBSTACLE, RIGHT
+from udan.hil.world import CameraProcess, HilWorld
 
 pytestmark = pytest.mark.hil
 
