@@ -19,11 +19,13 @@ the find_water/surround one, so models of those tasks are untouched by it.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
 from udan.envs.errors import EnvConfigError, parse_range
+from udan.envs.observe import ObsSpec
 from udan.envs.rules import ACTION_DELTAS, N_ACTIONS, checked_actions
 
 SPEC_NAME = "hidden_goal"
@@ -39,29 +41,14 @@ _IN_ZONE_WINDOW = np.abs(_WINDOW).sum(1) <= 1
 
 
 @dataclass(frozen=True)
-class HiddenGoalSpec:
+class HiddenGoalSpec(ObsSpec):
     """Shape and meaning of one agent's observation in ``arena/hidden_goal``."""
 
-    height: int
-    width: int
     view: int = 1
     version: int = SPEC_VERSION
     name: str = SPEC_NAME
-
-    @property
-    def window(self) -> int:
-        return 2 * self.view + 1
-
-    @property
-    def spatial_size(self) -> int:
-        return len(CHANNELS) * self.window * self.window
-
-    @property
-    def size(self) -> int:
-        return self.spatial_size + len(FEATURES)
-
-    def to_dict(self) -> dict:
-        return {**asdict(self), "channels": list(CHANNELS), "features": list(FEATURES)}
+    channels: ClassVar[tuple[str, ...]] = CHANNELS
+    features: ClassVar[tuple[str, ...]] = FEATURES
 
 
 @dataclass(frozen=True)

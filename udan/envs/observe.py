@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -32,12 +33,15 @@ FEATURES: tuple[str, ...] = (
 
 @dataclass(frozen=True)
 class ObsSpec:
-    """Shape and meaning of one agent's observation vector."""
+    """Shape and meaning of one agent's observation vector (a task with an observation of its
+    own subclasses it with its own planes, features and version)."""
 
     height: int
     width: int
     view: int
     version: int = OBS_SPEC_VERSION
+    channels: ClassVar[tuple[str, ...]] = CHANNELS
+    features: ClassVar[tuple[str, ...]] = FEATURES
 
     @property
     def window(self) -> int:
@@ -45,14 +49,14 @@ class ObsSpec:
 
     @property
     def spatial_size(self) -> int:
-        return len(CHANNELS) * self.window * self.window
+        return len(self.channels) * self.window * self.window
 
     @property
     def size(self) -> int:
-        return self.spatial_size + len(FEATURES)
+        return self.spatial_size + len(self.features)
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "channels": list(CHANNELS), "features": list(FEATURES)}
+        return {**asdict(self), "channels": list(self.channels), "features": list(self.features)}
 
 
 def pad_layout(codes: np.ndarray, view: int) -> np.ndarray:
