@@ -1,5 +1,5 @@
 """What ``udan-eval --ablate`` can switch off in a UDAN model at acting time (no torch here, so
-the CLI can list them before loading a model); :class:`udan.learner.Actor` carries them out."""
+the CLI can list and check them before playing); :class:`udan.learner.Actor` carries them out."""
 
 #: Mode -> what it replaces, and nothing else.
 ABLATIONS: dict[str, str] = {
@@ -9,3 +9,14 @@ ABLATIONS: dict[str, str] = {
     "leaders=random": "as many leaders as the scorer picks, chosen at random among the agents",
     "leaders=all": "every agent leads a group (in the scorer's order)",
 }
+
+
+def check_ablation(mode: str, algo: str, communicates: bool, episodes: int) -> None:
+    """ValueError unless ``mode`` can be applied to a model of ``algo`` acting in ``episodes``
+    episodes at once: a known mode, a model with messages, another episode to shuffle from."""
+    if mode not in ABLATIONS:
+        raise ValueError(f"--ablate: unknown mode {mode!r}; known: {', '.join(ABLATIONS)}")
+    if not communicates:
+        raise ValueError(f"--ablate: this {algo} model has no messages")
+    if mode == "messages=shuffle" and episodes < 2:
+        raise ValueError("--ablate messages=shuffle needs at least 2 episodes at once")

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from udan.ablations import ABLATIONS
+from udan.ablations import ABLATIONS, check_ablation
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.errors import parse_range
 from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES, Policy
-from udan.probe import format_probe, probe
+from udan.probe import check_probe, format_probe, probe
 
 
 @dataclass
@@ -117,7 +117,7 @@ def write_csv(results: list[CellResult], path: Path) -> None:
 class CheckpointPolicy:
     """A trained checkpoint acting greedily, with per-slot memory (fresh for new agents).
 
-    ``ablate`` names one of :data:`udan.learner.ABLATIONS`; its random draws come from ``seed``.
+    ``ablate`` names one of :data:`udan.ablations.ABLATIONS`; its random draws come from ``seed``.
     """
 
     def __init__(self, model, ablate: str | None = None, seed: int = 0) -> None:
@@ -139,10 +139,14 @@ class CheckpointPolicy:
 Z95 = 1.959964
 
 
-def paired_difference(full: CellResult, ablated: CellResult) -> tuple[float, float]:
-    """Mean of ablated - full over the same episodes, and the half-width of its 95 % CI."""
-    diff = ablated.scores - full.scores
-    return float(diff.mean()), float(Z95 * diff.std(ddof=1) / np.sqrt(diff.size))
+def mean_ci(values: np.ndarray) -> tuple[float, float]:
+    """Mean of ``values`` and the half-width of its 95 % CI."""
+    return float(values.mean()), float(Z95 * values.std(ddof=1) / np.sqrt(values.size))
+
+
+def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
+    """Per-episode scores of every cell with ``agents`` agents, in cell then episode order."""
+    return np.concatenate([r.scores for r in results if r.agents == agents])
 
 
 def format_ablation(
@@ -150,25 +154,16 @@ def format_ablation(
 ) -> str:
     """Markdown table per agent count (cells of every obstacle count pooled by episode): the
     full model's score, each ablation's, and the paired difference with its 95 % CI."""
-    agents = sorted({r.agents for r in full})
-    pooled = {
-        name: {
-            n: CellResult(
-                n, -1, 0, 0.0, 0.0, np.concatenate([r.scores for r in res if r.agents == n])
-            )
-            for n in agents
-        }
-        for name, res in {"full": full, **ablated}.items()
-    }
     head = "| agents | full | " + " | ".join(f"{m} | Δ {m} [95 % CI]" for m in ablated) + " |"
     lines = [f"**{title}**", "", head, "|---" * (2 + 2 * len(ablated)) + "|"]
-    for n in agents:
-        base = pooled["full"][n]
-        cells = [f"{base.scores.mean():.2f}"]
-        for name in ablated:
-            mean, half = paired_difference(base, pooled[name][n])
+    for n in sorted({r.agents for r in full}):
+        base = pooled_scores(full, n)
+        cells = [f"{base.mean():.2f}"]
+        for results in ablated.values():
+            scores = pooled_scores(results, n)
+            mean, half = mean_ci(scores - base)  # paired: the same episodes in the same order
             cells += [
-                f"{pooled[name][n].scores.mean():.2f}",
+                f"{scores.mean():.2f}",
                 f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]",
             ]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
@@ -188,12 +183,10 @@ def format_bounds(results: list[CellResult], config, title: str) -> str:
         "|---|---|---|---|---|",
     ]
     for n in sorted({r.agents for r in results}):
-        scores = np.concatenate([r.scores for r in results if r.agents == n])
+        mean, half = mean_ci(pooled_scores(results, n))
         bound, best = no_message_bound(*size, n), oracle_score(*size, n)
-        half = Z95 * scores.std(ddof=1) / np.sqrt(scores.size)
         lines.append(
-            f"| {n} | {scores.mean():.2f} ± {half:.2f} | {bound:.2f} | {best:.2f} | "
-            f"{scores.mean() - bound:+.2f} |"
+            f"| {n} | {mean:.2f} ± {half:.2f} | {bound:.2f} | {best:.2f} | {mean - bound:+.2f} |"
         )
     return "\n".join(lines)
 
@@ -285,23 +278,18 @@ def _probed_model(args: argparse.Namespace, sources: list):
     refuses what cannot be ablated or probed."""
     if not args.ablate and not args.probe:
         return None
-    unknown = [m for m in args.ablate if m not in ABLATIONS]
-    if unknown:
-        raise EnvConfigError(
-            f"--ablate: unknown mode {unknown[0]!r}; known: {', '.join(ABLATIONS)}"
-        )
     policies = [policy for _, _, policy in sources if isinstance(policy, CheckpointPolicy)]
     if len(sources) != 1 or len(policies) != 1:
         raise EnvConfigError("--ablate/--probe take exactly one checkpoint and no --policy")
-    model = policies[0].model
-    if not model.spec.communicates:
-        what = "--ablate" if args.ablate else "--probe"
-        raise EnvConfigError(f"{what}: this {model.spec.algo} checkpoint has no messages")
-    if args.probe and sources[0][1] != "arena/hidden_goal":
-        raise EnvConfigError("--probe needs arena/hidden_goal (a goal the messages could carry)")
-    if "messages=shuffle" in args.ablate and args.episodes < 2:
-        raise EnvConfigError("--ablate messages=shuffle needs --episodes >= 2")
-    return model
+    spec = policies[0].model.spec
+    try:
+        for mode in args.ablate:
+            check_ablation(mode, spec.algo, spec.communicates, args.episodes)
+    except ValueError as err:
+        raise EnvConfigError(str(err)) from None
+    if args.probe:
+        check_probe(spec, sources[0][1], args.episodes)
+    return policies[0].model
 
 
 def learning_curves(runs: list[Path], path: Path | None) -> str:

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from udan.ablations import ABLATIONS
+from udan.ablations import check_ablation
 from udan.envs.grouping import form_groups, group_rounds, hypothetical_groups, neighbour_tables
 from udan.nets import AgentEncoder, GroupComm, LeaderScorer, QHead, SetMixer
 
@@ -138,9 +138,9 @@ def merge_rounds(groups_per_arena: list[np.ndarray], offsets: list[int]) -> list
 class Actor:
     """Acts for B arenas with per-slot recurrent state; forms groups every ``interval`` steps.
 
-    ``ablate`` (one of :data:`ABLATIONS`) changes what it names at acting time; ``rng`` draws
-    the random leaders and message shuffles. The last step's features and messages are kept
-    (``feats``, ``messages``, each (B*N, H)) for probes.
+    ``ablate`` (one of :data:`udan.ablations.ABLATIONS`) changes what it names at acting time;
+    ``rng`` draws the random leaders and message shuffles. The last step's features and
+    messages are kept (``feats``, ``messages``, each (B*N, H)) for probes.
     """
 
     def __init__(
@@ -152,12 +152,7 @@ class Actor:
         rng: np.random.Generator | None = None,
     ) -> None:
         if ablate is not None:
-            if ablate not in ABLATIONS:
-                raise ValueError(f"unknown ablation {ablate!r}; known: {', '.join(ABLATIONS)}")
-            if not model.spec.communicates:
-                raise ValueError(f"--ablate {ablate}: this {model.spec.algo} model has no messages")
-            if ablate == "messages=shuffle" and batch < 2:
-                raise ValueError("--ablate messages=shuffle needs at least 2 episodes at once")
+            check_ablation(ablate, model.spec.algo, model.spec.communicates, batch)
         self.model, self.batch, self.slots = model, batch, slots
         self.ablate = ablate
         self.rng = rng if rng is not None else np.random.default_rng(0)

@@ -48,18 +48,26 @@ def ridge_r2(fit: tuple[np.ndarray, ...], x: np.ndarray, y: np.ndarray) -> float
     return float(np.mean(1.0 - residual / np.maximum(total, 1e-12)))
 
 
+def check_probe(spec, env_name: str, episodes: int) -> None:
+    """EnvConfigError unless a model of ``spec`` on ``env_name`` can be probed over
+    ``episodes`` episodes: it has messages, a hidden goal, and another episode to shuffle from."""
+    if not spec.communicates:
+        raise EnvConfigError(f"--probe: this {spec.algo} checkpoint has no messages to probe")
+    if env_name != "arena/hidden_goal":
+        raise EnvConfigError("--probe needs arena/hidden_goal (a goal the messages could carry)")
+    if episodes < 2:
+        raise EnvConfigError(
+            "--probe needs at least 2 episodes (a shuffled message comes from another)"
+        )
+
+
 def collect(model, agents: int, episodes: int, seed: int) -> dict[str, np.ndarray]:
     """Roll out greedy episodes of ``arena/hidden_goal`` with ``agents`` agents and gather, for
     every agent-step where the agent does not see the goal, the three probe inputs and the
     goal's cell."""
     from udan.learner import Actor
 
-    if not model.spec.communicates:
-        raise EnvConfigError(f"--probe: this {model.spec.algo} model has no messages to probe")
-    if episodes < 2:
-        raise EnvConfigError(
-            "--probe needs at least 2 episodes (a shuffled message comes from another)"
-        )
+    check_probe(model.spec, "arena/hidden_goal", episodes)
     env = make_vec("arena/hidden_goal", batch=episodes, seed=seed, agents=agents, obstacles=0)
     obs = env.reset()
     actor = Actor(model, env.batch, env.slots)

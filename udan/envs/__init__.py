@@ -40,11 +40,11 @@ __all__ = [
 def observation_layout(obs_spec: dict) -> tuple[int, tuple[str, ...], tuple[str, ...]]:
     """(version, channels, features) this code has for a saved spec's ``name``: each task with
     an observation of its own versions it apart (no name: the find_water/surround spec)."""
-    from udan.envs import hidden_goal, observe
+    from udan.envs.hidden_goal import SPEC_NAME, HiddenGoalSpec
+    from udan.envs.observe import ObsSpec
 
-    if obs_spec.get("name") == hidden_goal.SPEC_NAME:
-        return hidden_goal.SPEC_VERSION, hidden_goal.CHANNELS, hidden_goal.FEATURES
-    return observe.OBS_SPEC_VERSION, observe.CHANNELS, observe.FEATURES
+    spec = HiddenGoalSpec if obs_spec.get("name") == SPEC_NAME else ObsSpec
+    return spec.version, spec.channels, spec.features
 
 
 def env_names() -> list[str]:
