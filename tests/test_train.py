@@ -11,7 +11,7 @@ import torch
 
 from udan.checkpoint import CheckpointError, load_checkpoint, load_model
 from udan.evaluate import CheckpointPolicy, evaluate
-from udan.learner import ALGOS
+from udan.learner import ALGOS, leader_targets
 from udan.policies import OraclePolicy
 from udan.train import TrainConfig, field_docs, train
 
@@ -131,6 +131,7 @@ def one_line_exit_2(proc, fragment):
         (["--agents", "5-1"], "inverted"),
         (["--algo", "qmix", "--agents", "1-5"], "fixed number"),
         (["--out", "{blocked}/run"], "cannot create folder"),
+        (["--leader-target", "rank"], "--leader-target must be one of"),
     ],
 )
 def test_bad_train_input(args, fragment, tmp_path):
@@ -174,3 +175,28 @@ def test_corrupt_truncated_and_foreign_checkpoints(tmp_path):
         run_cli(good, "--env", "arena/surround", "--episodes", 1, tool="udan-eval"),
         "trained on arena/find_water",
     )
+
+
+def test_leader_targets_signed_keeps_the_sign_minmax_the_batch_range():
+    # Mostly small gains with one large one: every gain leads under "signed"; under the paper's
+    # min-max only what lies above the midpoint of the batch's extremes does.
+    delta = torch.tensor([-0.1, 0.05, 0.1, 0.2, 1.0])
+    signed = leader_targets(delta, "signed")
+    assert ((signed > 0.5) == (delta > 0)).all()
+    assert signed.min() >= 0 and signed.max() == 1.0
+    minmax = leader_targets(delta, "minmax")
+    assert minmax.tolist() == pytest.approx([0.0, 0.136, 0.182, 0.273, 1.0], abs=1e-3)
+    assert int((minmax > 0.5).sum()) == 1
+    for mode in ("signed", "minmax"):
+        assert leader_targets(torch.zeros(3), mode).tolist() == [0.5] * 3
+
+
+def test_a_run_older_than_leader_target_resumes_as_minmax(tmp_path):
+    cfg = TrainConfig(steps=160, out=str(tmp_path / "r"), leader_target="minmax", **TINY)
+    train(cfg, log=quiet)
+    ckpt = load_checkpoint(tmp_path / "r" / "checkpoint.pt")
+    del ckpt["config"]["leader_target"]  # as written before the field existed
+    torch.save(ckpt, tmp_path / "r" / "checkpoint.pt")
+    train(dataclasses.replace(cfg, steps=320), resume=True, log=quiet)
+    with pytest.raises(CheckpointError, match="leader_target"):
+        train(dataclasses.replace(cfg, steps=480, leader_target="signed"), resume=True, log=quiet)

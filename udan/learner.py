@@ -277,12 +277,26 @@ class Actor:
         return out
 
 
-def leader_targets(delta_q: torch.Tensor) -> torch.Tensor:
-    """Min-max normalised ΔQ (eq. 9's ΔQ̂) in [0, 1]; all equal -> 0.5."""
-    lo, hi = delta_q.min(), delta_q.max()
-    if hi - lo < 1e-8:
+LEADER_TARGETS = ("signed", "minmax")
+
+
+def leader_targets(delta_q: torch.Tensor, mode: str = "signed") -> torch.Tensor:
+    """ΔQ of eq. (4) scaled into [0, 1] as the leader classifier's BCE target (eq. 9's ΔQ̂).
+
+    ``minmax`` is the paper's min-max normalisation (all equal -> 0.5): its 0.5 is the midpoint
+    of the batch's two most extreme ΔQ, so who leads depends on the tails of each batch.
+    ``signed`` divides by the batch's largest |ΔQ| and centres on 0.5, so the target is above
+    0.5 exactly when the group's messages raise its members' values (docs/algorithm.md).
+    """
+    if mode == "minmax":
+        lo, hi = delta_q.min(), delta_q.max()
+        if hi - lo < 1e-8:
+            return torch.full_like(delta_q, 0.5)
+        return (delta_q - lo) / (hi - lo)
+    scale = delta_q.abs().max()
+    if scale < 1e-8:
         return torch.full_like(delta_q, 0.5)
-    return (delta_q - lo) / (hi - lo)
+    return 0.5 + 0.5 * delta_q / scale
 
 
 def hypothetical_delta_q(

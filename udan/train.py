@@ -33,6 +33,7 @@ from udan.envs.arena import ArenaBatch
 from udan.envs.grouping import neighbour_tables
 from udan.learner import (
     ALGOS,
+    LEADER_TARGETS,
     Actor,
     ModelSpec,
     MultiAgentQ,
@@ -101,6 +102,9 @@ class TrainConfig:
     rollout, so groups, and gradients through the messages, exist before the scorer picks any."""
     messages: str = "on"
     """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
+    leader_target: str = "signed"
+    """UDAN: the leader classifier's target from ΔQ: signed (lead when messages raise the
+    group's values) or minmax (the paper's eq. 9; runs older than this field used it)."""
     leader_coef: float = 1.0
     """Weight of the leader classifier's BCE loss."""
     td_lambda: float = 0.8
@@ -116,6 +120,8 @@ class TrainConfig:
 # A resumed run continues exactly when its config is unchanged; only these may differ (a longer
 # --steps extends a finished run, with the exploration schedule stretched accordingly).
 RESUMABLE_FIELDS = {"steps", "out"}
+# What a run whose config.json predates a field used for it, where that is not the default.
+EARLIER_DEFAULTS = {"leader_target": "minmax"}
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -295,7 +301,8 @@ def update(
         rows, delta = hypothetical_delta_q(model, f.view(-1, n, f.shape[-1]), pos, alive_f, tables)
         if len(rows):
             logits = model.leader(f, neighbour_rows(tables))[rows]
-            leader_loss = F.binary_cross_entropy_with_logits(logits, leader_targets(delta))
+            target = leader_targets(delta, cfg.leader_target)
+            leader_loss = F.binary_cross_entropy_with_logits(logits, target)
             loss = loss + cfg.leader_coef * leader_loss
             losses["leader_loss"] = leader_loss.item()
     optim.zero_grad()
@@ -319,6 +326,10 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
     if not 0.0 <= cfg.leader_explore <= 1.0:
         raise EnvConfigError(f"--leader-explore {cfg.leader_explore} is not a probability")
+    if cfg.leader_target not in LEADER_TARGETS:
+        raise EnvConfigError(
+            f"--leader-target must be one of {', '.join(LEADER_TARGETS)}, not {cfg.leader_target!r}"
+        )
     if cfg.messages == "off" and cfg.algo != "udan":
         raise EnvConfigError(f"--messages off is for udan; {cfg.algo} has no messages")
     if cfg.algo == "qmix" and env.config.agents[0] != env.config.agents[1]:
@@ -366,7 +377,7 @@ class Run:
         self.checkpoint: dict | None = None
         if resume:
             ckpt = load_checkpoint(self.path)
-            defaults = asdict(TrainConfig())  # a field newer than the run has its default
+            defaults = asdict(TrainConfig()) | EARLIER_DEFAULTS  # fields newer than the run
             diff = sorted(
                 k
                 for k, v in asdict(cfg).items()
