@@ -1,5 +1,6 @@
-"""udan-eval --ablate and --probe: each ablation changes exactly what it names; the probe finds a
-goal where there is one; the CLIs end to end on arena/hidden_goal."""
+"""udan-eval --ablate, --probe and --leaders: each ablation changes exactly what it names; the
+probe finds a goal where there is one; the leader table counts what the actor does; the CLIs end
+to end on arena/hidden_goal."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 import torch
 
 from udan.envs import make_vec
+from udan.leaders import collect, format_leaders, row
 from udan.learner import Actor, ModelSpec, MultiAgentQ
 from udan.probe import ridge_fit, ridge_r2
 
@@ -153,6 +155,38 @@ def test_probe_finds_a_goal_in_a_message_that_carries_it_and_none_in_one_that_do
     assert abs(ridge_r2(ridge_fit(*train), *test)) < 0.02
 
 
+def test_leader_row_counts_leaders_gains_and_the_min_max_midpoint():
+    prob = np.array([0.9, 0.8, 0.2, 0.1, 0.6])
+    delta = np.array([0.5, 0.1, 0.05, -0.2, -1.0])  # one large loss moves min-max's midpoint
+    r = row(3, prob, delta, threshold=0.5)
+    assert r.candidates == 5
+    assert r.values["leading"] == pytest.approx(0.6)
+    assert r.values["ΔQ > 0"] == pytest.approx(0.6)
+    assert r.values["min-max target > 0.5"] == pytest.approx(0.8)  # midpoint at -0.25
+    assert r.values["mean ΔQ of leaders"] == pytest.approx((0.5 + 0.1 - 1.0) / 3)
+    assert r.values["mean ΔQ of others"] == pytest.approx((0.05 - 0.2) / 2)
+    everyone = row(3, np.ones(5), delta, threshold=0.5)
+    assert np.isnan(everyone.values["mean ΔQ of others"])
+    assert "| 3 | 5 | 100.0 % | 60.0 % | 80.0 % |" in format_leaders([everyone], "t")
+
+
+def test_leader_table_sees_the_leaders_the_actor_forms_groups_with(plain_and_model):
+    _, model = plain_and_model
+    prob, delta = collect(model, "arena/hidden_goal", AGENTS, 0, BATCH, seed=4)
+    # hidden_goal lasts 20 steps, groups form every 5: 4 formations of BATCH arenas of AGENTS
+    formations = -(-20 // model.spec.group_interval)
+    assert len(prob) == len(delta) == formations * BATCH * AGENTS
+    env = make_vec("arena/hidden_goal", batch=BATCH, seed=4, agents=AGENTS, obstacles=0)
+    obs, actor, leaders = env.reset(), Actor(model, BATCH, AGENTS), 0
+    for step in range(20):
+        actions = actor.act(obs, env.present, env.pos, env.joined)
+        if step % model.spec.group_interval == 0:
+            leaders += sum(len(g) for g in actor.groups)
+        obs, _, _ = env.step(actions)
+    assert int((prob > model.spec.leader_threshold).sum()) == leaders
+    assert np.isfinite(delta).all() and delta.std() > 0
+
+
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(args, capture_output=True, text=True, timeout=600)
 
@@ -177,6 +211,7 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
         "--ablate",
         "messages=shuffle,leaders=all",
         "--probe",
+        "--leaders",
         "--out",
         str(tmp_path),
     )
@@ -184,6 +219,7 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "no-message bound" in report and "Δ messages=shuffle" in report
     assert "R² shuffled message" in report
+    assert "| 2 | " in report.split("leaders against ΔQ")[1]
     out = _run(str(BIN / "udan-export"), ckpt, "-o", str(tmp_path / "policy.onnx"))
     assert out.returncode == 0, out.stdout + out.stderr
     assert "verdict: PASS" in out.stdout
@@ -201,7 +237,7 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
     assert curves.returncode == 0 and "| quiet | 640 |" in curves.stdout, curves.stderr
     assert (tmp_path / "curves.png").stat().st_size > 1000
     quiet = str(tmp_path / "quiet" / "checkpoint.pt")
-    for flag in (["--ablate", "messages=zero"], ["--probe"]):
+    for flag in (["--ablate", "messages=zero"], ["--probe"], ["--leaders"]):
         out = _run(str(BIN / "udan-eval"), quiet, "--agents", "2", "--obstacles", "0", *flag)
         assert out.returncode == 2
-        assert out.stderr.count("\n") == 1 and "has no messages" in out.stderr
+        assert out.stderr.count("\n") == 1 and "has no" in out.stderr

@@ -18,6 +18,7 @@ import numpy as np
 from udan.ablations import ABLATIONS, check_ablation
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.errors import parse_range
+from udan.leaders import check_leaders, format_leaders, leader_table
 from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES, Policy
 from udan.probe import check_probe, format_probe, probe
@@ -274,13 +275,15 @@ def plot_comparison(tables: dict[str, list[CellResult]], env_name: str, path: Pa
 
 
 def _probed_model(args: argparse.Namespace, sources: list):
-    """The one checkpoint's model that ``--ablate`` / ``--probe`` act on (None without them);
-    refuses what cannot be ablated or probed."""
-    if not args.ablate and not args.probe:
+    """The one checkpoint's model that ``--ablate`` / ``--probe`` / ``--leaders`` act on (None
+    without them); refuses what cannot be ablated, probed or inspected."""
+    if not args.ablate and not args.probe and not args.leaders:
         return None
     policies = [policy for _, _, policy in sources if isinstance(policy, CheckpointPolicy)]
     if len(sources) != 1 or len(policies) != 1:
-        raise EnvConfigError("--ablate/--probe take exactly one checkpoint and no --policy")
+        raise EnvConfigError(
+            "--ablate/--probe/--leaders take exactly one checkpoint and no --policy"
+        )
     spec = policies[0].model.spec
     try:
         for mode in args.ablate:
@@ -289,6 +292,8 @@ def _probed_model(args: argparse.Namespace, sources: list):
         raise EnvConfigError(str(err)) from None
     if args.probe:
         check_probe(spec, sources[0][1], args.episodes)
+    if args.leaders:
+        check_leaders(spec)
     return policies[0].model
 
 
@@ -375,6 +380,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="arena/hidden_goal: a linear probe of the goal in the messages (udan.probe)",
     )
+    parser.add_argument(
+        "--leaders",
+        action="store_true",
+        help="UDAN: who leads against what the messages would change (udan.leaders)",
+    )
     args = parser.parse_args(argv)
     from udan.checkpoint import CheckpointError
 
@@ -415,6 +425,11 @@ def main(argv: list[str] | None = None) -> int:
             for mode in args.ablate
         }
         probes = probe(probed, agents, args.episodes, args.seed) if args.probe else []
+        leaders = (
+            leader_table(probed, sources[0][1], agents, obstacles, args.episodes, args.seed)
+            if args.leaders
+            else []
+        )
     except (EnvConfigError, CheckpointError, FolderError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
@@ -446,6 +461,9 @@ def main(argv: list[str] | None = None) -> int:
         reports.append(
             format_probe(probes, f"{env_name}, {sources[0][0]}: linear probe of the goal's cell")
         )
+    if leaders:
+        title = f"{env_name}, {sources[0][0]}: leaders against ΔQ (eq. 4) at group formations"
+        reports.append(format_leaders(leaders, title))
     for report in reports:
         print(report, end="\n\n")
     if reports and args.out is not None:

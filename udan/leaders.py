@@ -1,0 +1,126 @@
+"""Who leads, and should they? The leader classifier of a UDAN checkpoint against its targets.
+
+At every group formation of greedy episodes, each present agent is scored as a leader (the
+classifier's probability ``p``) and its hypothetical group's ΔQ of eq. (4) is computed (what the
+messages change in its members' values). The table says how many agents lead, how many groups
+the messages would help (ΔQ > 0), how many the paper's min-max target would call leaders
+(above 0.5 after min-max scaling over the same candidates), and whether ``p`` follows ΔQ: the
+evidence for the leader-selection finding in docs/algorithm.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from udan.envs import EnvConfigError, make_vec
+
+COLUMNS = (
+    "leading",
+    "ΔQ > 0",
+    "min-max target > 0.5",
+    "mean ΔQ",
+    "mean ΔQ of leaders",
+    "mean ΔQ of others",
+    "corr(p, ΔQ)",
+)
+
+
+@dataclass
+class LeaderRow:
+    """Leader statistics of one fleet size over every group formation of the episodes."""
+
+    agents: int
+    candidates: int
+    """Agent-steps scored (present agents at group formations with a group of 2 or more)."""
+    values: dict[str, float]
+
+
+def check_leaders(spec) -> None:
+    """EnvConfigError unless the checkpoint has a leader classifier to inspect."""
+    if not spec.communicates:
+        raise EnvConfigError(f"--leaders: this {spec.algo} checkpoint has no leaders")
+
+
+def collect(model, env_name: str, agents: int, obstacles, episodes: int, seed: int):
+    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes."""
+    from udan.envs.grouping import neighbour_tables
+    from udan.learner import Actor, hypothetical_delta_q, neighbour_rows
+
+    check_leaders(model.spec)
+    spec = model.spec
+    env = make_vec(env_name, batch=episodes, seed=seed, agents=agents, obstacles=obstacles)
+    obs = env.reset()
+    actor = Actor(model, env.batch, env.slots)
+    probs, deltas = [], []
+    done = np.zeros(env.batch, dtype=bool)
+    step = 0
+    while not done.all():
+        pos, present = env.pos.copy(), env.present.copy()
+        actions = actor.act(obs, env.present, env.pos, env.joined)
+        if step % spec.group_interval == 0:
+            feats = actor.feats
+            tables = neighbour_tables(pos, present, spec.attention_neighbours)
+            rows, delta = hypothetical_delta_q(
+                model, feats.view(env.batch, env.slots, -1), pos, present, tables
+            )
+            with torch.no_grad():
+                logits = model.leader(feats, neighbour_rows(tables))[rows]
+            probs.append(torch.sigmoid(logits).numpy())
+            deltas.append(delta.numpy())
+        obs, _, done = env.step(actions)
+        step += 1
+    return np.concatenate(probs), np.concatenate(deltas)
+
+
+def row(agents: int, prob: np.ndarray, delta: np.ndarray, threshold: float) -> LeaderRow:
+    """The statistics of one fleet size's candidates."""
+    lead = prob > threshold
+    span = delta.max() - delta.min() if len(delta) else 0.0
+    minmax = (delta - delta.min()) / span if span > 1e-8 else np.full_like(delta, 0.5)
+    varied = len(delta) > 1 and prob.std() > 0 and delta.std() > 0
+    values = {
+        "leading": float(lead.mean()),
+        "ΔQ > 0": float((delta > 0).mean()),
+        "min-max target > 0.5": float((minmax > 0.5).mean()),
+        "mean ΔQ": float(delta.mean()),
+        "mean ΔQ of leaders": float(delta[lead].mean()) if lead.any() else float("nan"),
+        "mean ΔQ of others": float(delta[~lead].mean()) if (~lead).any() else float("nan"),
+        "corr(p, ΔQ)": float(np.corrcoef(prob, delta)[0, 1]) if varied else float("nan"),
+    }
+    return LeaderRow(agents, len(delta), values)
+
+
+def leader_table(
+    model, env_name: str, agents: tuple[int, int], obstacles, episodes: int, seed: int
+) -> list[LeaderRow]:
+    """One :class:`LeaderRow` per fleet size (obstacles drawn per episode from ``obstacles``)."""
+    table = []
+    for n in range(agents[0], agents[1] + 1):
+        prob, delta = collect(model, env_name, n, obstacles, episodes, seed)
+        if len(delta):
+            table.append(row(n, prob, delta, model.spec.leader_threshold))
+    return table
+
+
+def format_leaders(table: list[LeaderRow], title: str) -> str:
+    """Markdown table: shares as percentages, ΔQ in the Q values' units."""
+    lines = [
+        f"**{title}**",
+        "",
+        "| agents | candidates | " + " | ".join(COLUMNS) + " |",
+        "|---" * (len(COLUMNS) + 2) + "|",
+    ]
+    for r in table:
+        cells = [
+            "—"
+            if np.isnan(r.values[c])
+            else f"{100 * r.values[c]:.1f} %"
+            if c in COLUMNS[:3]
+            else f"{r.values[c]:+.3f}"
+            for c in COLUMNS
+        ]
+        lines.append(f"| {r.agents} | {r.candidates} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
