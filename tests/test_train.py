@@ -76,7 +76,8 @@ def test_an_interrupted_run_resumes_exactly(tmp_path, algo_options):
     assert load_checkpoint(tmp_path / "b" / "checkpoint.pt")["progress"]["steps"] == 800
     with pytest.raises(CheckpointError, match="config differs"):
         train(dataclasses.replace(config("b"), lr=0.1), resume=True, log=quiet)
-    resumed = train(config("b"), resume=True, log=quiet)
+    # checkpointing more often changes when state is saved, never what is learnt
+    resumed = train(dataclasses.replace(config("b"), checkpoint_every=400), resume=True, log=quiet)
     a, b = load_checkpoint(straight), load_checkpoint(resumed)
     for key in ("weights", "target_weights", "critic_weights", "critic_target_weights"):
         if a.get(key) is not None:

@@ -118,8 +118,9 @@ class TrainConfig:
 
 
 # A resumed run continues exactly when its config is unchanged; only these may differ (a longer
-# --steps extends a finished run, with the exploration schedule stretched accordingly).
-RESUMABLE_FIELDS = {"steps", "out"}
+# --steps extends a finished run, with the exploration schedule stretched accordingly; checkpoints
+# may come more or less often).
+RESUMABLE_FIELDS = {"steps", "out", "checkpoint_every"}
 # What a run whose config.json predates a field used for it, where that is not the default.
 EARLIER_DEFAULTS = {"leader_target": "minmax"}
 
