@@ -45,7 +45,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from udan.edge.calibration import VisionError
-from udan.edge.camera import CameraError, FrameGrabber, open_camera, yield_to_dispatch
+from udan.edge.camera import (
+    CameraError,
+    FrameGrabber,
+    open_camera,
+    yield_process_to_dispatch,
+    yield_to_dispatch,
+)
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage
 from udan.edge.vision import Scene, Vision
@@ -486,8 +492,8 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
             server.control(data)
         if not data:
             return 0
+        yield_process_to_dispatch()
         grabber.start()
-        yield_to_dispatch()  # after starting the capture thread, which lowers its own priority
         asyncio.run(server.serve())
         server.send("end")
     except (CameraError, VisionError) as err:

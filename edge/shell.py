@@ -188,6 +188,9 @@ class EdgeShell:
             now = time.monotonic_ns()
             state = core.due(scene, self.link.move_finished, now)
             if state is None:
+                # the next frame may decide; its "taken" news comes in time to rehearse on only
+                # when this loop wakes within the frame's analysis, so rehearse now as well
+                core.warm_up(self.link.move_finished)
                 continue
             await self._step(state, now)
             self._collect()
