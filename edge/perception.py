@@ -63,8 +63,9 @@ STOP_TIMEOUT_S = 3.0
 """Longest the edge waits for the perception process to close its camera and exit."""
 EXIT_STATUS_WAIT_S = 0.02
 """Longest the edge waits for a perception process that closed its socket to report its exit."""
-MESSAGE_BYTES = 1 << 20
-"""Largest message either side reads (a scene is ~1 KB; a frame is never sent)."""
+MESSAGE_BYTES = 1 << 16
+"""Largest message either side reads: a scene of five cars is ~0.6 KB pickled, and the marker
+dictionary has 50 ids (a frame is never sent). Below the allocator's mmap threshold."""
 _ERRORS = {"camera": CameraError, "vision": VisionError}
 
 
@@ -225,6 +226,7 @@ class ProcessPerception(Perception):
         self._wake: asyncio.Event | None = None
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
+        self._buffer = bytearray(MESSAGE_BYTES)
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         cmd = [
             sys.executable, "-m", "udan.edge.perception", "--fd", str(theirs.fileno()),
@@ -299,17 +301,17 @@ class ProcessPerception(Perception):
         """Everything the perception process has sent since the last call (a loop callback)."""
         while not self._stream_ended:
             try:
-                data = self._sock.recv(MESSAGE_BYTES)
+                size = self._sock.recv_into(self._buffer)
             except BlockingIOError:
                 break
             except OSError as err:
                 self._end(PerceptionError(f"the perception process's socket failed: {err}"))
                 break
-            if not data:
+            if not size:
                 ended = _exit_of(self._proc)
                 self._end(PerceptionError(f"the perception process ended mid-run ({ended})"))
                 break
-            self._take_message(pickle.loads(data))
+            self._take_message(pickle.loads(memoryview(self._buffer)[:size]))
         assert self._wake is not None
         self._wake.set()
 
