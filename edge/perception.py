@@ -20,8 +20,8 @@ so the control core can rehearse the step meanwhile; frames captured before a cu
 scene matters: one the loop has not taken when the next arrives is dropped and counted, like a
 frame overwritten before the vision took it.
 
-The perception process runs in a session of its own (a Ctrl-C on the terminal is not its to
-handle) and ignores SIGINT and SIGTERM: the edge stops it after the cars' emergency stop, and it
+The perception process runs in a process group of its own (a Ctrl-C on the terminal is not its
+to handle) and ignores SIGINT and SIGTERM: the edge stops it after the cars' emergency stop, and it
 ends by itself when the edge's end of the socket closes, however the edge ended. If it dies
 mid-run, the edge's next wait for a scene raises :class:`PerceptionError` and the run ends with
 an emergency stop.
@@ -65,7 +65,7 @@ EXIT_STATUS_WAIT_S = 0.02
 """Longest the edge waits for a perception process that closed its socket to report its exit."""
 MESSAGE_BYTES = 1 << 16
 """Largest message either side reads: a scene of five cars is ~0.6 KB pickled, and the marker
-dictionary has 50 ids (a frame is never sent). Below the allocator's mmap threshold."""
+dictionary has 50 ids (a frame is never sent)."""
 _ERRORS = {"camera": CameraError, "vision": VisionError}
 
 
@@ -232,9 +232,13 @@ class ProcessPerception(Perception):
             sys.executable, "-m", "udan.edge.perception", "--fd", str(theirs.fileno()),
             "--camera", camera, "--vision", settings.to_json(),
         ]  # fmt: skip
-        try:  # its own session: a Ctrl-C on the terminal is the edge's to handle
+        # its own process group, so a Ctrl-C on the terminal is the edge's alone to handle, but
+        # the edge's session: Linux's autogroup scheduling shares the CPU between sessions
+        # first, and in a session of its own the process would stand level with the edge's
+        # loop whatever its threads' niceness
+        try:
             self._proc = subprocess.Popen(
-                cmd, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, start_new_session=True
+                cmd, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, process_group=0
             )
         except BaseException:
             self._sock.close()
@@ -365,10 +369,13 @@ class ProcessPerception(Perception):
         return event
 
     def close(self) -> None:
-        """Tell the perception process to stop, take its last counts, and wait for it."""
+        """Tell the perception process to stop, take its last counts, and wait for it; one
+        still starting (nothing opened that its exit would not release) is killed."""
         if self._reading is not None and not self._stream_ended:
             self._reading.remove_reader(self._sock.fileno())
-        if not self._stream_ended:
+        if not self.sweep_frames and not self._stream_ended:
+            self._proc.kill()
+        elif not self._stream_ended:
             self._send(("stop",))
             self._sock.setblocking(True)
             self._sock.settimeout(STOP_TIMEOUT_S)
@@ -492,6 +499,8 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         sock.send(pickle.dumps(("ready", vision.sweep_frames)))
         while (data := sock.recv(MESSAGE_BYTES)) and pickle.loads(data)[0] != "start":
             server.control(data)
+            if server.stopping.is_set():  # stopped before the run began
+                return 0
         if not data:
             return 0
         yield_process_to_dispatch()
