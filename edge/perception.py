@@ -61,8 +61,8 @@ START_TIMEOUT_S = 30.0
 OpenCV and numpy from disk)."""
 STOP_TIMEOUT_S = 3.0
 """Longest the edge waits for the perception process to close its camera and exit."""
-EXIT_STATUS_WAIT_S = 0.02
-"""Longest the edge waits for a perception process that closed its socket to report its exit."""
+EXIT_STATUS_WAIT_S = 1.0
+"""Longest an error message waits for a perception process that closed its socket to exit."""
 MESSAGE_BYTES = 1 << 16
 """Largest message either side reads: a scene of five cars is ~0.6 KB pickled, and the marker
 dictionary has 50 ids (a frame is never sent)."""
@@ -71,6 +71,19 @@ _ERRORS = {"camera": CameraError, "vision": VisionError}
 
 class PerceptionError(RuntimeError):
     """The perception process ended or broke off mid-run; the message is one line."""
+
+
+class PerceptionDied(PerceptionError):
+    """The perception process's socket closed mid-run. How the process ended is looked up when
+    the message is read, after the cars' emergency stop: a killed process closes its files a
+    moment before its exit status is there, and the loop must not wait for it."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        super().__init__()
+        self.proc = proc
+
+    def __str__(self) -> str:
+        return f"the perception process ended mid-run ({_exit_of(self.proc)})"
 
 
 @dataclass(frozen=True)
@@ -312,8 +325,7 @@ class ProcessPerception(Perception):
                 self._end(PerceptionError(f"the perception process's socket failed: {err}"))
                 break
             if not size:
-                ended = _exit_of(self._proc)
-                self._end(PerceptionError(f"the perception process ended mid-run ({ended})"))
+                self._end(PerceptionDied(self._proc))
                 break
             self._take_message(pickle.loads(memoryview(self._buffer)[:size]))
         assert self._wake is not None
