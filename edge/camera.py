@@ -58,14 +58,27 @@ class Frame:
 FRAME_THREAD_NICENESS = 5
 
 
-def yield_to_dispatch() -> None:
-    """Lower the calling thread's priority by ``FRAME_THREAD_NICENESS`` (Linux niceness is per
-    thread, and raising it needs no privilege); elsewhere nothing changes."""
+_LOOP_NICENESS = os.getpriority(os.PRIO_PROCESS, 0) if hasattr(os, "getpriority") else 0
+"""The niceness of the thread that imported this module: the event loop's (in the perception
+process, the niceness it was started with, the loop's)."""
+
+
+def yield_to_dispatch(thread_id: int | None = None) -> None:
+    """Run the calling thread (or native ``thread_id``) ``FRAME_THREAD_NICENESS`` nicer than the
+    event loop (Linux niceness is per thread, and raising it needs no privilege); elsewhere
+    nothing changes."""
     with contextlib.suppress(AttributeError, OSError):
-        tid = threading.get_native_id()
-        os.setpriority(
-            os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + FRAME_THREAD_NICENESS
-        )
+        tid = thread_id or threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, _LOOP_NICENESS + FRAME_THREAD_NICENESS)
+
+
+def yield_process_to_dispatch() -> None:
+    """Every thread of this process (libraries start some of their own) nicer than the loop,
+    as :func:`yield_to_dispatch`; threads started later inherit it from their creator."""
+    tasks = Path("/proc/self/task")
+    if tasks.is_dir():
+        for task in tasks.iterdir():
+            yield_to_dispatch(int(task.name))
 
 
 class CameraError(Exception):

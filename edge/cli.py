@@ -34,10 +34,15 @@ from udan.edge.fleet import Fleet
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
+from udan.edge.perception import (
+    PerceptionError,
+    ProcessPerception,
+    ThreadPerception,
+    VisionSettings,
+)
 from udan.edge.shell import EdgeShell, LoopConfig
 from udan.edge.telemetry import Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
-from udan.edge.vision import Vision
 from udan.envs.errors import OneLineParser
 from udan.export.metadata import MetadataError, obs_spec
 from udan.fleetfile import FleetFileError, load_fleet, write_fleet
@@ -106,6 +111,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
     run.add_argument(
+        "--perception", choices=("process", "thread"), default="process",
+        help="camera and vision in a process of their own (default) or in threads of this one",
+    )  # fmt: skip
+    run.add_argument(
         "--realtime", action="store_true", help="event loop at real-time priority (SCHED_RR; "
         "needs root or CAP_SYS_NICE)"
     )  # fmt: skip
@@ -160,24 +169,35 @@ def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
 
 async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
     geometry = ArenaGeometry()
-    _, policy_step = load_policy(args.model, geometry)
     cars = load_fleet(args.fleet)
-    transport = open_transport(args.transport, cars, **_transport_options(args))
-    vision = Vision(
-        geometry, car_markers=[c.marker for c in cars], calibration_file=args.calibration
-    )
-    grabber = FrameGrabber(open_camera(args.camera))
+    settings = VisionSettings(geometry, tuple(c.marker for c in cars), args.calibration)
+    # the perception process starts first and opens the camera while the model loads
+    perception = ProcessPerception(args.camera, settings) if args.perception == "process" else None
+    try:
+        _, policy_step = load_policy(args.model, geometry)
+        transport = open_transport(args.transport, cars, **_transport_options(args))
+        if perception is None:
+            perception = ThreadPerception(FrameGrabber(open_camera(args.camera)), settings.build())
+        perception.wait_ready()
+    except BaseException:
+        if perception is not None:
+            perception.close()
+        raise
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
     core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
-    shell = EdgeShell(grabber, vision, link, core, telemetry, config)
+    shell = EdgeShell(perception, link, core, telemetry, config)
     play = None
     if world is not None:
         play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
     freeze_garbage()
-    await link.start()
+    try:
+        await link.start()
+    except BaseException:
+        perception.close()
+        raise
     try:
         return await shell.run(play)
     finally:
@@ -299,6 +319,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:
         print(f"{PROG}: error: {err.strerror or err}", file=sys.stderr)
         return 2
+    except PerceptionError as err:  # every car got its emergency stop in the runtime's finally
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # outside the run: no car is being driven
         print(f"{PROG}: stopped by a signal while starting or closing", file=sys.stderr)
         return 0

@@ -111,7 +111,7 @@ class EpisodePlayer:
         frames = 0
         while not shell.stop.is_set() and time.monotonic() < deadline:
             frames += await shell.next_scene() is not None
-            if set(shell.core.fleet.slot) == cars and frames > shell.vision.sweep_frames:
+            if set(shell.core.fleet.slot) == cars and frames > shell.perception.sweep_frames:
                 return True
         return False
 

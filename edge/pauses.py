@@ -40,7 +40,8 @@ def collect_between_steps(count: int) -> None:
 def run_realtime(priority: int = REALTIME_PRIORITY) -> None:
     """Schedule the calling thread ``SCHED_RR`` at ``priority``; raises ``PermissionError``
     without ``CAP_SYS_NICE``. Threads and processes it starts later run ordinary
-    (``SCHED_RESET_ON_FORK``): the frame threads and the ``--sim`` world must not outrank it."""
+    (``SCHED_RESET_ON_FORK``): the perception process and the ``--sim`` world must not outrank
+    it."""
     os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
 
 

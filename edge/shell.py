@@ -2,9 +2,9 @@
 
 The shell does the I/O and the timing tricks (rehearsal while a frame is analysed, garbage
 collection between steps); the core decides what happens. One asyncio loop. Capture runs in its
-own thread (:class:`udan.edge.camera.FrameGrabber`, newest frame wins) and vision in a worker thread
-(OpenCV releases the GIL), so the dispatcher's retransmission timers keep running while a frame
-is analysed.
+own process by default (:class:`udan.edge.perception.ProcessPerception`: the camera and the vision
+there, compact scenes over a socket read by the loop), so the dispatcher's retransmission timers
+and the scene never wait for each other's turn at the interpreter lock.
 
 When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`). All commands
 of a step leave at once, each valid until the decision + 10 ms.
@@ -20,17 +20,16 @@ import gc
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
-from udan.edge.camera import Frame, FrameGrabber, yield_to_dispatch
 from udan.edge.core import ControlCore, StepTiming
 from udan.edge.fleet import FleetState
 from udan.edge.link import CarLink
 from udan.edge.pauses import collect_between_steps
+from udan.edge.perception import FrameTaken, Perception
 from udan.edge.telemetry import Telemetry
-from udan.edge.vision import Scene, Vision
+from udan.edge.vision import Scene
 
 ESTOP_GRACE_S = 0.05
 #: With no step for this long, collect anyway.
@@ -57,28 +56,23 @@ class LoopConfig:
 
 
 class EdgeShell:
-    """Wires camera, vision, link and telemetry around a :class:`ControlCore`; ``run`` is the
-    whole job."""
+    """Wires perception, link and telemetry around a :class:`ControlCore`; ``run`` is the whole
+    job."""
 
     def __init__(
         self,
-        grabber: FrameGrabber,
-        vision: Vision,
+        perception: Perception,
         link: CarLink,
         core: ControlCore,
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
     ) -> None:
-        self.grabber = grabber
-        self.vision = vision
+        self.perception = perception
         self.link = link
         self.core = core
         self.telemetry = telemetry
         self.config = config
         self.stop = asyncio.Event()
-        self._vision_pool = ThreadPoolExecutor(
-            1, thread_name_prefix="vision", initializer=yield_to_dispatch
-        )
         self._collections = 0
         self._longest_collection_ns = 0
         self._collected_ns = time.monotonic_ns()
@@ -98,7 +92,7 @@ class EdgeShell:
             loop.call_later(self.config.duration_s, self.stop.set)
         gc.disable()  # collections run between steps (_collect), never inside one
         try:
-            self.grabber.start()
+            self.perception.start()
             if play is None:
                 await self.drive(max_steps=None)
             else:
@@ -111,12 +105,12 @@ class EdgeShell:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
             await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
-            self.grabber.close()
-            self._vision_pool.shutdown(wait=True)
+            self.perception.close()
         report = self.telemetry.report()
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
-        report["camera"] = {"captured": self.grabber.captured, "dropped": self.grabber.dropped}
+        perception = self.perception
+        report["camera"] = {"captured": perception.captured, "dropped": perception.dropped}
         report["gc"] = {
             "collections": self._collections,
             "longest_ms": round(self._longest_collection_ns / 1e6, 3),
@@ -126,38 +120,39 @@ class EdgeShell:
     # ------------------------------------------------------------------ frames
     async def next_scene(self) -> Scene | None:
         """The next frame's scene (one the core does not find stale), with the fleet updated;
-        None on a stall, the end of the stream, or a stop."""
+        None on a stall, the end of the stream, or a stop. While a frame that may decide the
+        step is analysed, the core rehearses the step."""
         while not self.stop.is_set():
-            frame = await self._wait_frame()
-            if frame is None:
+            self.perception.skip_before(self.core.not_before_ns)
+            event = await self._wait_event()
+            if event is None:
                 return None
-            if not self.core.wants(frame.t_capture_ns):
+            if not self.core.wants(event.t_capture_ns):
                 continue
-            loop = asyncio.get_running_loop()
-            analysed = loop.run_in_executor(self._vision_pool, self.vision.process, frame)
-            self.core.warm_up(self.link.move_finished)  # this frame may be the deciding one
-            scene = await analysed
-            now = time.monotonic_ns()
-            self._fold(scene, frame, now)
-            return scene
+            if isinstance(event, FrameTaken):
+                self.core.warm_up(self.link.move_finished)  # this frame may be the deciding one
+                continue
+            self._fold(event, time.monotonic_ns())
+            return event
         return None
 
-    async def _wait_frame(self) -> Frame | None:
+    async def _wait_event(self) -> FrameTaken | Scene | None:
+        perception = self.perception
         stopping = asyncio.ensure_future(self.stop.wait())
-        grabbing = asyncio.ensure_future(self.grabber.next_frame(self.config.stall_s))
-        done, _ = await asyncio.wait({stopping, grabbing}, return_when=asyncio.FIRST_COMPLETED)
+        waiting = asyncio.ensure_future(perception.next_event(self.config.stall_s))
+        done, _ = await asyncio.wait({stopping, waiting}, return_when=asyncio.FIRST_COMPLETED)
         stopping.cancel()
-        if grabbing not in done:
-            grabbing.cancel()
+        if waiting not in done:
+            waiting.cancel()
             return None
-        frame = grabbing.result()
-        if frame is None and not self.grabber.ended:
+        event = waiting.result()
+        if event is None and not perception.ended:
             self.telemetry.event("camera_stall", stall_s=self.config.stall_s)
-        elif frame is None:
+        elif event is None:
             self.stop.set()
-        return frame
+        return event
 
-    def _fold(self, scene: Scene, frame: Frame, now: int) -> None:
+    def _fold(self, scene: Scene, now: int) -> None:
         """A scene into the core; telemetry of the frame and of the fleet's changes."""
         change = self.core.see(scene, self.link.ready_cars(), now)
         for car in change.joined:
@@ -165,7 +160,8 @@ class EdgeShell:
         for car in change.left:
             self.telemetry.event("fleet_leave", car=car)
         seen = sum(s.inside for s in scene.cars.values())
-        self.telemetry.frame(frame.index, frame.t_capture_ns, now, seen, self.grabber.dropped)
+        dropped = self.perception.dropped
+        self.telemetry.frame(scene.frame_index, scene.t_capture_ns, now, seen, dropped)
 
     # ------------------------------------------------------------------ steps
     def _collect(self) -> None:
@@ -192,6 +188,9 @@ class EdgeShell:
             now = time.monotonic_ns()
             state = core.due(scene, self.link.move_finished, now)
             if state is None:
+                # the next frame may decide; its "taken" news comes in time to rehearse on only
+                # when this loop wakes within the frame's analysis, so rehearse now as well
+                core.warm_up(self.link.move_finished)
                 continue
             await self._step(state, now)
             self._collect()

@@ -82,6 +82,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--edge-realtime", action="store_true", help="udan-edge --realtime (needs CAP_SYS_NICE)"
     )
+    run.add_argument(
+        "--edge-perception",
+        choices=("process", "thread"),
+        default="process",
+        help="udan-edge --perception: camera and vision in their own process, or in threads",
+    )
     return p
 
 
@@ -193,6 +199,7 @@ class Loop:
             cmd += ["--duration", str(a.duration)]
         if a.edge_realtime:
             cmd.append("--realtime")
+        cmd += ["--perception", a.edge_perception]
         return self._spawn("edge", cmd)
 
     async def apply_faults(self, control: tuple[str, int]) -> None:

@@ -1,0 +1,545 @@
+"""Perception — the camera and the vision — beside the control loop: compact Scenes out.
+
+Two ways to run it behind one interface (:class:`Perception`):
+
+- :class:`ProcessPerception` (the default): the camera source is opened, read and analysed in a
+  process of its own (``python -m udan.edge.perception``, a fresh interpreter: the edge has an
+  ONNX model and a frozen heap that forking would copy for nothing). Frames never leave it; it
+  sends each frame's :class:`~udan.edge.vision.Scene` (about a kilobyte pickled) over a Unix
+  ``SOCK_SEQPACKET`` socket pair, read by the edge's asyncio loop with ``add_reader``. In one
+  process the vision thread and the event loop took turns at one interpreter lock, so the
+  scene waited on the loop's Python and the loop on the vision's; in two processes they run on
+  two cores at once.
+- :class:`ThreadPerception`: the earlier design, a capture thread and a one-thread vision
+  executor in the edge process (``udan-edge --perception thread``): for tests and platforms
+  without subprocesses, and as the reference the benchmark compares against.
+
+Both tell the loop that a frame is being analysed (:class:`FrameTaken`) before its scene comes,
+so the control core can rehearse the step meanwhile; frames captured before a cut-off
+(:meth:`Perception.skip_before`, the core's stale-frame rule) are not analysed. Only the newest
+scene matters: one the loop has not taken when the next arrives is dropped and counted, like a
+frame overwritten before the vision took it.
+
+The perception process runs in a process group of its own (a Ctrl-C on the terminal is not its
+to handle) and ignores SIGINT and SIGTERM: the edge stops it after the cars' emergency stop, and it
+ends by itself when the edge's end of the socket closes, however the edge ended. If it dies
+mid-run, the edge's next wait for a scene raises :class:`PerceptionError` and the run ends with
+an emergency stop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from udan.edge.calibration import VisionError
+from udan.edge.camera import (
+    CameraError,
+    FrameGrabber,
+    open_camera,
+    yield_process_to_dispatch,
+    yield_to_dispatch,
+)
+from udan.edge.geometry import ArenaGeometry
+from udan.edge.pauses import freeze_garbage
+from udan.edge.vision import Scene, Vision
+
+START_TIMEOUT_S = 30.0
+"""Longest the edge waits for the perception process to open its camera (a cold start imports
+OpenCV and numpy from disk)."""
+STOP_TIMEOUT_S = 3.0
+"""Longest the edge waits for the perception process to close its camera and exit."""
+EXIT_STATUS_WAIT_S = 1.0
+"""Longest an error message waits for a perception process that closed its socket to exit."""
+MESSAGE_BYTES = 1 << 16
+"""Largest message either side reads: a scene of five cars is ~0.6 KB pickled, and the marker
+dictionary has 50 ids (a frame is never sent)."""
+_ERRORS = {"camera": CameraError, "vision": VisionError}
+
+
+class PerceptionError(RuntimeError):
+    """The perception process ended or broke off mid-run; the message is one line."""
+
+
+class PerceptionDied(PerceptionError):
+    """The perception process's socket closed mid-run. How the process ended is looked up when
+    the message is read, after the cars' emergency stop: a killed process closes its files a
+    moment before its exit status is there, and the loop must not wait for it."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        super().__init__()
+        self.proc = proc
+
+    def __str__(self) -> str:
+        return f"the perception process ended mid-run ({_exit_of(self.proc)})"
+
+
+@dataclass(frozen=True)
+class FrameTaken:
+    """The vision has started to analyse this frame; its scene follows."""
+
+    index: int
+    t_capture_ns: int
+
+
+@dataclass(frozen=True)
+class VisionSettings:
+    """What a :class:`~udan.edge.vision.Vision` is built from, sent to the perception process."""
+
+    geometry: ArenaGeometry = field(default_factory=ArenaGeometry)
+    car_markers: tuple[int, ...] | None = None
+    calibration_file: str | None = None
+
+    def build(self) -> Vision:
+        return Vision(
+            self.geometry, car_markers=self.car_markers, calibration_file=self.calibration_file
+        )
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> VisionSettings:
+        fields = json.loads(text)
+        markers = fields["car_markers"]
+        return cls(
+            ArenaGeometry(**fields["geometry"]),
+            None if markers is None else tuple(markers),
+            fields["calibration_file"],
+        )
+
+
+class Perception(ABC):
+    """Frames to scenes beside the event loop; see the module docstring."""
+
+    sweep_frames: int
+    """Frames one sweep of the whole image takes (:attr:`udan.edge.vision.Vision.sweep_frames`)."""
+
+    @property
+    @abstractmethod
+    def captured(self) -> int:
+        """Frames read from the camera."""
+
+    @property
+    @abstractmethod
+    def dropped(self) -> int:
+        """Frames whose scene the loop never got: overwritten before the vision took them, or
+        analysed but superseded before the loop took the scene."""
+
+    @property
+    @abstractmethod
+    def ended(self) -> bool:
+        """The stream has ended and every scene of it has been taken."""
+
+    @abstractmethod
+    def wait_ready(self) -> None:
+        """Until the camera is open and the vision built; raises their errors
+        (:class:`~udan.edge.camera.CameraError`, :class:`~udan.edge.calibration.VisionError`,
+        one line each)."""
+
+    @abstractmethod
+    def start(self) -> None:
+        """Start capturing (later calls do nothing)."""
+
+    @abstractmethod
+    def skip_before(self, t_ns: int) -> None:
+        """Frames captured before ``t_ns`` are stale: do not analyse them."""
+
+    @abstractmethod
+    async def next_event(self, timeout: float) -> FrameTaken | Scene | None:
+        """The next news, waiting up to ``timeout`` seconds: a frame taken for analysis, or the
+        newest scene not yet returned; None on timeout or at the end of the stream. Raises the
+        camera's or the vision's error, or :class:`PerceptionError`."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop capturing and release the camera."""
+
+
+# -- in the edge process ------------------------------------------------------------------
+class ThreadPerception(Perception):
+    """Capture in a thread (:class:`~udan.edge.camera.FrameGrabber`) and vision in a one-thread
+    executor, both in the edge process and under its interpreter lock."""
+
+    def __init__(self, grabber: FrameGrabber, vision: Vision) -> None:
+        self.grabber = grabber
+        self.vision = vision
+        self.sweep_frames = vision.sweep_frames
+        self._pool = ThreadPoolExecutor(
+            1, thread_name_prefix="vision", initializer=yield_to_dispatch
+        )
+        self._analysing: asyncio.Future[Scene] | None = None
+        self._not_before_ns = 0
+
+    @property
+    def captured(self) -> int:
+        return self.grabber.captured
+
+    @property
+    def dropped(self) -> int:
+        return self.grabber.dropped
+
+    @property
+    def ended(self) -> bool:
+        return self._analysing is None and self.grabber.ended
+
+    def wait_ready(self) -> None:
+        """Nothing to wait for: the camera was opened and the vision built by the caller."""
+
+    def start(self) -> None:
+        self.grabber.start()
+
+    def skip_before(self, t_ns: int) -> None:
+        self._not_before_ns = t_ns
+
+    async def next_event(self, timeout: float) -> FrameTaken | Scene | None:
+        if self._analysing is not None:
+            analysing, self._analysing = self._analysing, None
+            return await analysing
+        while (frame := await self.grabber.next_frame(timeout)) is not None:
+            if frame.t_capture_ns >= self._not_before_ns:
+                loop = asyncio.get_running_loop()
+                self._analysing = loop.run_in_executor(self._pool, self.vision.process, frame)
+                return FrameTaken(frame.index, frame.t_capture_ns)
+        return None
+
+    def close(self) -> None:
+        self.grabber.close()
+        self._pool.shutdown(wait=True)
+
+
+# -- in a process of its own ----------------------------------------------------------------
+class ProcessPerception(Perception):
+    """The camera and the vision in a perception process of their own."""
+
+    def __init__(self, camera: str, settings: VisionSettings = VisionSettings()) -> None:
+        """Start the perception process (it opens ``camera`` and builds its vision while the
+        caller goes on; :meth:`wait_ready` waits for that)."""
+        self.camera = camera
+        self.sweep_frames = 0
+        self._captured = 0
+        self._dropped_there = 0  # frames the perception process's grabber overwrote
+        self._superseded = 0  # scenes superseded here before the loop took them
+        self._scene: Scene | None = None
+        self._taken: FrameTaken | None = None
+        self._error: Exception | None = None
+        self._stream_ended = False
+        self._wake: asyncio.Event | None = None
+        self._reading: asyncio.AbstractEventLoop | None = None
+        self._not_before_ns = 0
+        self._buffer = bytearray(MESSAGE_BYTES)
+        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        cmd = [
+            sys.executable, "-m", "udan.edge.perception", "--fd", str(theirs.fileno()),
+            "--camera", camera, "--vision", settings.to_json(),
+        ]  # fmt: skip
+        # its own process group, so a Ctrl-C on the terminal is the edge's alone to handle, but
+        # the edge's session: Linux's autogroup scheduling shares the CPU between sessions
+        # first, and in a session of its own the process would stand level with the edge's
+        # loop whatever its threads' niceness
+        try:
+            self._proc = subprocess.Popen(
+                cmd, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, process_group=0
+            )
+        except BaseException:
+            self._sock.close()
+            raise
+        finally:
+            theirs.close()
+
+    def wait_ready(self) -> None:
+        if self.sweep_frames:
+            return
+        self._sock.settimeout(START_TIMEOUT_S)
+        try:
+            first = self._sock.recv(MESSAGE_BYTES)
+        except TimeoutError:
+            raise PerceptionError(
+                f"the perception process did not open {self.camera} within {START_TIMEOUT_S:g} s"
+            ) from None
+        if not first:
+            self._stream_ended = True
+            raise PerceptionError(
+                f"the perception process ended while starting ({_exit_of(self._proc)})"
+            )
+        kind, *body = pickle.loads(first)
+        if kind == "error":
+            self._stream_ended = True
+            raise _ERRORS.get(body[0], PerceptionError)(body[1])
+        self._sock.setblocking(False)
+        self.sweep_frames = int(body[0])
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    @property
+    def captured(self) -> int:
+        return self._captured
+
+    @property
+    def dropped(self) -> int:
+        return self._dropped_there + self._superseded
+
+    @property
+    def ended(self) -> bool:
+        return self._stream_ended and self._scene is None
+
+    def start(self) -> None:
+        self.wait_ready()
+        if self._reading is None:
+            self._reading = asyncio.get_running_loop()
+            self._wake = asyncio.Event()
+            self._reading.add_reader(self._sock.fileno(), self._receive)
+            self._send(("start",))
+
+    def skip_before(self, t_ns: int) -> None:
+        if t_ns != self._not_before_ns and not self._stream_ended:
+            self._not_before_ns = t_ns
+            self._send(("skip_before", t_ns))
+
+    def _send(self, message: tuple) -> None:
+        with contextlib.suppress(OSError):  # it has gone: the reader reports that
+            self._sock.send(pickle.dumps(message))
+
+    def _receive(self) -> None:
+        """Everything the perception process has sent since the last call (a loop callback)."""
+        while not self._stream_ended:
+            try:
+                size = self._sock.recv_into(self._buffer)
+            except BlockingIOError:
+                break
+            except OSError as err:
+                self._end(PerceptionError(f"the perception process's socket failed: {err}"))
+                break
+            if not size:
+                self._end(PerceptionDied(self._proc))
+                break
+            self._take_message(pickle.loads(memoryview(self._buffer)[:size]))
+        assert self._wake is not None
+        self._wake.set()
+
+    def _take_message(self, message: tuple) -> None:
+        kind, *body = message
+        if kind == "taken":
+            self._taken = FrameTaken(body[0], body[1])
+        elif kind == "scene":
+            if self._scene is not None:
+                self._superseded += 1
+            self._scene = body[0]
+        elif kind == "error":
+            self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
+            return
+        elif kind == "end":
+            self._end(None)
+        self._captured, self._dropped_there = body[-2], body[-1]
+
+    def _end(self, error: Exception | None) -> None:
+        self._stream_ended = True
+        self._error = error
+        if self._reading is not None:
+            self._reading.remove_reader(self._sock.fileno())
+
+    def _next(self) -> FrameTaken | Scene | None:
+        """The newest scene if one is waiting, else the frame being analysed if not yet told;
+        at the end, None or the error that ended it."""
+        scene, taken = self._scene, self._taken
+        if scene is not None:
+            self._scene = None
+            if taken is not None and taken.index <= scene.frame_index:
+                self._taken = None
+            return scene
+        if taken is not None:
+            self._taken = None
+            return taken
+        if self._stream_ended and self._error is not None:
+            raise self._error
+        return None
+
+    async def next_event(self, timeout: float) -> FrameTaken | Scene | None:
+        self.start()
+        assert self._wake is not None and self._reading is not None
+        deadline = self._reading.time() + timeout
+        while (event := self._next()) is None and not self._stream_ended:
+            self._wake.clear()
+            try:
+                await asyncio.wait_for(self._wake.wait(), deadline - self._reading.time())
+            except TimeoutError:
+                return self._next()
+        return event
+
+    def close(self) -> None:
+        """Tell the perception process to stop, take its last counts, and wait for it; one
+        still starting (nothing opened that its exit would not release) is killed."""
+        if self._reading is not None and not self._stream_ended:
+            self._reading.remove_reader(self._sock.fileno())
+        if not self.sweep_frames and not self._stream_ended:
+            self._proc.kill()
+        elif not self._stream_ended:
+            self._send(("stop",))
+            self._sock.setblocking(True)
+            self._sock.settimeout(STOP_TIMEOUT_S)
+            with contextlib.suppress(OSError, EOFError, pickle.UnpicklingError):
+                while data := self._sock.recv(MESSAGE_BYTES):
+                    kind, *body = pickle.loads(data)
+                    if kind in ("taken", "scene", "end"):
+                        self._captured, self._dropped_there = body[-2], body[-1]
+            self._stream_ended = True
+        self._sock.close()
+        _reap(self._proc)
+
+
+def _exit_of(proc: subprocess.Popen) -> str:
+    """How a process ended, in words (waiting a moment at most)."""
+    try:  # a killed process closes its files a moment before its exit status is ready
+        code = proc.wait(EXIT_STATUS_WAIT_S)
+    except subprocess.TimeoutExpired:
+        return "its socket closed"
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+    return f"exit code {code}"
+
+
+def _reap(proc: subprocess.Popen) -> None:
+    """Wait for a process told to stop; kill it if it does not."""
+    try:
+        proc.wait(STOP_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+# -- the perception process itself ---------------------------------------------------------
+class _Server:
+    """The perception process's loop: newest frame, scene, send; control messages between."""
+
+    POLL_S = 0.1
+    """How often a frame wait wakes to look for a stop (a stop also wakes it at once)."""
+
+    def __init__(self, sock: socket.socket, grabber: FrameGrabber, vision: Vision) -> None:
+        self.sock = sock
+        self.grabber = grabber
+        self.vision = vision
+        self.not_before_ns = 0
+        self.unsent = 0
+        """Scenes the edge's full socket had no room for (it is not reading: they are old)."""
+        self.stopping = asyncio.Event()
+
+    def send(self, *message: Any) -> None:
+        """A message with the counts so far; a scene the socket has no room for is dropped."""
+        counts = (self.grabber.captured, self.grabber.dropped + self.unsent)
+        try:
+            self.sock.send(pickle.dumps((*message, *counts)))
+        except BlockingIOError:
+            self.unsent += message[0] == "scene"
+
+    def control(self, data: bytes) -> None:
+        """One message from the edge; an empty one (the edge has gone) is a stop."""
+        kind, *body = pickle.loads(data) if data else ("stop",)
+        if kind == "skip_before":
+            self.not_before_ns = body[0]
+        elif kind == "stop":
+            self.stopping.set()
+
+    def _receive(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                data = self.sock.recv(MESSAGE_BYTES)
+            except BlockingIOError:
+                return
+            except OSError:
+                data = b""
+            self.control(data)
+
+    async def serve(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.sock.setblocking(False)
+        loop.add_reader(self.sock.fileno(), self._receive)
+        stopping = asyncio.ensure_future(self.stopping.wait())
+        try:
+            while not self.stopping.is_set():
+                grabbing = asyncio.ensure_future(self.grabber.next_frame(self.POLL_S))
+                await asyncio.wait({stopping, grabbing}, return_when=asyncio.FIRST_COMPLETED)
+                if not grabbing.done():
+                    grabbing.cancel()
+                    break
+                frame = grabbing.result()
+                if frame is None and self.grabber.ended:
+                    break
+                if frame is None or frame.t_capture_ns < self.not_before_ns:
+                    continue
+                self.send("taken", frame.index, frame.t_capture_ns)
+                self.send("scene", self.vision.process(frame))
+        finally:
+            stopping.cancel()
+            loop.remove_reader(self.sock.fileno())
+
+
+def _error_kind(err: Exception) -> str:
+    return "camera" if isinstance(err, CameraError) else "vision"
+
+
+def serve(fd: int, camera: str, settings: VisionSettings) -> int:
+    """The perception process: open ``camera`` and build the vision, say "ready" (or the error,
+    one line), wait for "start", then send scenes until told to stop or the edge goes away."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    sock = socket.socket(fileno=fd)
+    try:
+        vision = settings.build()
+        source = open_camera(camera)
+    except (CameraError, VisionError) as err:
+        sock.send(pickle.dumps(("error", _error_kind(err), str(err))))
+        return 2
+    grabber = FrameGrabber(source)
+    server = _Server(sock, grabber, vision)
+    try:
+        freeze_garbage()
+        sock.send(pickle.dumps(("ready", vision.sweep_frames)))
+        while (data := sock.recv(MESSAGE_BYTES)) and pickle.loads(data)[0] != "start":
+            server.control(data)
+            if server.stopping.is_set():  # stopped before the run began
+                return 0
+        if not data:
+            return 0
+        yield_process_to_dispatch()
+        grabber.start()
+        asyncio.run(server.serve())
+        server.send("end")
+    except (CameraError, VisionError) as err:
+        with contextlib.suppress(OSError):
+            server.send("error", _error_kind(err), str(err))
+        return 1
+    except OSError:  # the edge has gone
+        return 0
+    finally:
+        grabber.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m udan.edge.perception --fd N --camera URL --vision JSON`` (started by the
+    edge, not by hand)."""
+    parser = argparse.ArgumentParser(prog="udan.edge.perception", description=__doc__)
+    parser.add_argument("--fd", type=int, required=True)
+    parser.add_argument("--camera", required=True)
+    parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
+    args = parser.parse_args(argv)
+    return serve(args.fd, args.camera, args.vision)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
