@@ -219,7 +219,11 @@ def run_condition(condition: Condition, geometry: ArenaGeometry, frames: int) ->
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "camera.yaml")
         save_calibration(path, calibration)
-        vision = Vision(geometry, calibration_file=path if condition.calibrated else None)
+        vision = Vision(
+            geometry,
+            car_markers=markers,
+            calibration_file=path if condition.calibrated else None,
+        )
     reference = FullFrameAruco(geometry, calibration if condition.calibrated else None)
     truth = walks(geometry, len(markers), frames, seed=1)
     ours, theirs = _tally(), _tally()

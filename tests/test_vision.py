@@ -4,6 +4,7 @@ The exact-cell claim is made for cars at least 3 cm from every cell border (the 
 well under that); cars closer to a border are held to the 2 cm position bound only.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,20 +21,35 @@ CELL = GEOMETRY.cell_m
 BORDER = 0.03
 SWEEP = 12  # frames per sweep with the default 4 x 3 tiles
 POSITION_M = 0.02
-SPACING = 0.26  # two car bodies (0.22 m squares) side by side
+SPACING = 0.33  # two car bodies side by side (0.22 m squares; a label for a 2x marker: 0.32 m)
 CAMERAS = {
     "overhead": CameraModel(),
     "noise+blur": CameraModel(noise_sigma=6, blur_sigma=1.4, exposure=0.85, seed=1),
     "tilt+distortion": CameraModel(
         tilt_deg=20, yaw_deg=6, k1=-0.1, k2=0.02, noise_sigma=4, blur_sigma=1.0, seed=2
     ),
+    "tilt 45, rolled, k1 +0.2": CameraModel(
+        tilt_deg=45, roll_deg=12, k1=0.2, noise_sigma=3, blur_sigma=0.7, seed=3
+    ),
+    "tilt 60": CameraModel(tilt_deg=60, yaw_deg=-8, noise_sigma=3, blur_sigma=0.7, seed=4),
+    "markers 0.5x": CameraModel(tilt_deg=10, k1=-0.2, noise_sigma=3, blur_sigma=0.7, seed=5),
+    "markers 2x": CameraModel(tilt_deg=30, roll_deg=-20, noise_sigma=3, blur_sigma=0.7, seed=6),
 }
+PRINTED = {
+    "markers 0.5x": dataclasses.replace(GEOMETRY, car_marker_m=GEOMETRY.car_marker_m / 2),
+    "markers 2x": dataclasses.replace(GEOMETRY, car_marker_m=GEOMETRY.car_marker_m * 2),
+}
+"""Car markers printed at another size than the vision is told."""
+ROWS = {"tilt 60": 7}
+"""Rows cars are placed on (all by default): at 60 degrees the far two rows' car markers are about
+10 pixels tall, too few to read a 6-module marker reliably (OpenCV's full-frame detector misses
+them too: the condition table in docs/vision.md)."""
 LAYOUT = {"obstacle": [(3, 3), (5, 6)], "wall": [(0, 2), (0, 6)], "water": [(0, 4)], "target": []}
 
 
 @pytest.fixture(scope="module")
 def renderers():
-    return {name: Renderer(GEOMETRY, model) for name, model in CAMERAS.items()}
+    return {name: Renderer(PRINTED.get(name, GEOMETRY), model) for name, model in CAMERAS.items()}
 
 
 def vision_for(renderer, tmp_path, **kw):
@@ -60,12 +76,12 @@ class Run:
         return self.vision.process(Frame(image, 1000 * self.index, self.index))
 
 
-def placements(rng, count, near_border=False):
-    """`count` cars in distinct cells: (marker, x, y, heading). Offsets keep BORDER from every
-    cell border, or (near_border) lie within BORDER of one. Cars in neighbouring cells stay
-    SPACING apart, as their bodies would."""
+def placements(rng, count, near_border=False, rows=9):
+    """`count` cars in distinct cells of the first `rows` rows: (marker, x, y, heading). Offsets
+    keep BORDER from every cell border, or (near_border) lie within BORDER of one. Cars in
+    neighbouring cells stay SPACING apart, as their bodies would."""
     blocked = {c for cells in LAYOUT.values() for c in cells}
-    free = [(r, c) for r in range(9) for c in range(9) if (r, c) not in blocked]
+    free = [(r, c) for r in range(rows) for c in range(9) if (r, c) not in blocked]
     while True:
         cars = []
         for k, i in enumerate(rng.choice(len(free), count, replace=False)):
@@ -107,8 +123,8 @@ def test_every_car_in_its_cell_within_2cm(camera, renderers, tmp_path):
     rng = np.random.default_rng(sum(map(ord, camera)))
     for trial in range(6):
         near = trial >= 4
-        cars = placements(rng, 5, near_border=near)
-        for _ in range(2 * SWEEP):
+        cars = placements(rng, 5, near_border=near, rows=ROWS.get(camera, 9))
+        for _ in range(3 * SWEEP):  # markers printed small: two sweeps of the small-marker sweep
             if len(run.frame(cars).cars) == len(cars):
                 break
         check(run.frame(cars), cars, exact_cells=not near)
