@@ -164,7 +164,10 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     cars = load_fleet(args.fleet)
     transport = open_transport(args.transport, cars, **_transport_options(args))
     vision = Vision(
-        geometry, car_markers=[c.marker for c in cars], calibration_file=args.calibration
+        geometry,
+        car_markers=[c.marker for c in cars],
+        calibration_file=args.calibration,
+        marker_heights={c.marker: c.marker_height_m for c in cars},
     )
     grabber = FrameGrabber(open_camera(args.camera))
     link = CarLink(cars, transport)

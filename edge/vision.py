@@ -462,7 +462,12 @@ class Vision:
         seen = [(m, tr) for m, tr in self.tracker.tracks.items() if tr.index == index]
         if not seen or not self.calibrated:
             return {}
-        arena = self.fit.to_arena(np.stack([tr.corners for _, tr in seen]))
+        arena = np.empty((len(seen), 4, 2))
+        heights = np.array([self.marker_heights.get(m, 0.0) for m, _ in seen])
+        for height in set(heights.tolist()):
+            on = heights == height
+            corners = np.stack([tr.corners for (_, tr), o in zip(seen, on, strict=True) if o])
+            arena[on] = self.fit.to_arena(corners, height)
         centres = arena.mean(1)
         cells = self.geometry.cell_of(centres)
         inside = self.geometry.inside(cells)
