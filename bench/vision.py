@@ -223,6 +223,7 @@ def run_condition(condition: Condition, geometry: ArenaGeometry, frames: int) ->
             geometry,
             car_markers=markers,
             calibration_file=path if condition.calibrated else None,
+            marker_heights=heights,
         )
     reference = FullFrameAruco(geometry, calibration if condition.calibrated else None)
     truth = walks(geometry, len(markers), frames, seed=1)
@@ -239,7 +240,7 @@ def run_condition(condition: Condition, geometry: ArenaGeometry, frames: int) ->
         ours["ms"].append(cpu_ms)
         for m, x, y, _ in cars:
             s = scene.cars.get(m)
-            seen = None if s is None else (s.xy, s.cell, getattr(s, "uncertain", False))
+            seen = None if s is None else (s.xy, s.cell, s.uncertain)
             _score(ours, geometry, (x, y), seen)
         if i % OPENCV_EVERY == 0:
             c0 = time.thread_time_ns()

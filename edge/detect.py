@@ -28,6 +28,9 @@ is more than a hundred grey levels darker than its paper."""
 MIN_MODULE_PX = 2.0
 """Fewest image pixels per marker module a search resolution may leave a marker: below that it
 does not decode reliably, and the marker is searched for at a finer resolution instead."""
+SUBPIX_WINDOW = (3, 3)
+"""cornerSubPix half-window: inside one module of the smallest calibration marker."""
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 CELL_PIXELS = 8
 """Pixels per module when a candidate is unwarped to read its bits: more than OpenCV's 4 makes
 small markers (3 search pixels per module) decode reliably, for no measurable cost."""
@@ -136,6 +139,16 @@ class MarkerDetector:
         if ids is None:
             return [], np.zeros((0, 4, 2))
         return ids.ravel().tolist(), np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+
+    @staticmethod
+    def refine(img: np.ndarray, corners: np.ndarray) -> np.ndarray:
+        """`corners` (4, 2) of a large marker refined to a tenth of a pixel at full resolution
+        (cornerSubPix): the calibration markers' corners fix the camera model, and their misfit
+        measures the lens model's (contour refinement at the search resolution leaves each
+        corner up to a pixel inside the marker)."""
+        pts = corners.astype(np.float32).reshape(-1, 1, 2)
+        cv2.cornerSubPix(img, pts, SUBPIX_WINDOW, (-1, -1), _SUBPIX_CRITERIA)
+        return pts.reshape(4, 2).astype(np.float64)
 
     def box(self, cx: float, cy: float, half: float) -> tuple[int, int, int, int]:
         """The image window of half side `half` around (cx, cy), clipped to the frame."""

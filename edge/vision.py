@@ -79,6 +79,19 @@ SIZE_GRID = 13
 """Arena points per side at which expected marker sizes are computed."""
 SIZE_MARGIN = (0.8, 1.25)
 """Slack on the expected sizes (between grid points, corner rounding, a camera just moved)."""
+BUDGET_FLOOR_M = 0.004
+"""The least error budget a sighting has (metres): corner refinement and image noise."""
+BUDGET_PIXELS = 1.0
+"""Image pixels of position error allowed for, at the marker's own scale."""
+MISFIT_GAIN = 10.0
+"""Times the fit's RMS misfit on the calibration marker corners that a position elsewhere may
+be off: an uncorrected lens (k1 from -0.2 to 0.2, tilt 0-60 degrees, roll) puts points between
+the markers up to 7.8 times as far off (measured on rendered frames)."""
+UNSQUARE_GAIN = 0.5
+"""Times its distance from a square that a marker's position may be off."""
+PARALLAX_DOUBT = 0.25
+"""Without a calibration, the focal length is estimated: this share of a raised marker's
+parallax correction is doubted."""
 _ARENA = ArenaGeometry()
 _KIND_OF_ID = {marker: kind for kind, marker in CELL_KIND_IDS.items()}
 
@@ -97,6 +110,13 @@ class CarSighting:
     offset: tuple[float, float]
     """(dx, dy) metres from the centre of `cell`."""
     inside: bool
+    uncertain: bool = False
+    """Closer to a cell border than `error_budget_m`: the cell may be the next one, so the
+    car is held (it waits) rather than commanded from a guessed cell."""
+    error_budget_m: float = 0.0
+    """How far the car may be from `xy`: the lens model's misfit on the calibration markers,
+    a pixel's size where the marker is, how far the marker is from a square, the parallax of
+    a raised marker seen through an estimated focal length."""
 
 
 @dataclass(frozen=True)
@@ -471,11 +491,17 @@ class Vision:
         centres = arena.mean(1)
         cells = self.geometry.cell_of(centres)
         inside = self.geometry.inside(cells)
+        budgets = self._error_budgets(arena, np.array([tr.shape[2] for _, tr in seen]))
+        if self.fit.calibration is None and heights.any():
+            floor = self.fit.to_arena(np.stack([tr.corners for _, tr in seen])).mean(1)
+            budgets += PARALLAX_DOUBT * np.linalg.norm(floor - centres, axis=1)
+        half = self.geometry.cell_m / 2
         out = {}
         for k, (marker, _) in enumerate(seen):
             row, col = int(cells[k, 0]), int(cells[k, 1])
             cx, cy = self.geometry.cell_centre(row, col)
             x, y = float(centres[k, 0]), float(centres[k, 1])
+            budget = float(budgets[k])
             out[marker] = CarSighting(
                 marker=marker,
                 cell=(row, col),
@@ -483,8 +509,28 @@ class Vision:
                 heading=heading_of(arena[k]),
                 offset=(x - cx, y - cy),
                 inside=bool(inside[k]),
+                uncertain=half - max(abs(x - cx), abs(y - cy)) < budget,
+                error_budget_m=budget,
             )
         return out
+
+    def _error_budgets(self, arena: np.ndarray, image_sides: np.ndarray) -> np.ndarray:
+        """Per marker (arena corners (n, 4, 2), mean image sides (n,)): how far its true position
+        may be from the measured one (metres); see `CarSighting.error_budget_m`."""
+        edges = np.linalg.norm(np.roll(arena, -1, axis=1) - arena, axis=2)
+        side = edges.mean(1)
+        diagonals = np.linalg.norm(arena[:, 2:] - arena[:, :2], axis=2)
+        unsquare = np.maximum(
+            np.abs(edges - side[:, None]).max(1),
+            np.abs(diagonals - side[:, None] * math.sqrt(2)).max(1) / math.sqrt(2),
+        )
+        pixel = side / np.maximum(image_sides, 1.0)
+        return (
+            BUDGET_FLOOR_M
+            + BUDGET_PIXELS * pixel
+            + MISFIT_GAIN * self.fit.misfit_m
+            + UNSQUARE_GAIN * unsquare
+        )
 
     def process(self, frame: Frame) -> Scene:
         """The scene in one frame: track the known cars, sweep one tile, convert to the arena."""
@@ -499,7 +545,7 @@ class Vision:
         self.tracker.update(cars, frame.index)
         changed = False
         for marker, quad in [*swept.items(), *checked.items()]:
-            changed |= self._observe_corner(marker, quad)
+            changed |= self._observe_corner(marker, self.detector.refine(img, quad))
         if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
             self.fit.fit()
         sightings = self._sightings(frame.index)

@@ -365,3 +365,42 @@ def test_three_calibration_markers_place_a_tilted_camera(tilt, tmp_path):
     assert sorted(vision.fit.corners) == [0, 1, 3]
     check(scene, cars)
     assert max(errors_mm(scene, cars)) < 5
+
+
+# -- honest uncertainty: a wrong cell is never reported with confidence -------------------------
+LENSES = {
+    "k1 +0.15, no calibration": (CameraModel(tilt_deg=20, k1=0.15, noise_sigma=3, seed=13), False),
+    "k1 -0.2, no calibration": (
+        CameraModel(tilt_deg=45, roll_deg=10, k1=-0.2, noise_sigma=3, seed=14),
+        False,
+    ),
+    "k1 +0.05, no calibration": (CameraModel(k1=0.05, noise_sigma=3, seed=15), False),
+    "k1 -0.2, calibrated": (CameraModel(tilt_deg=30, k1=-0.2, noise_sigma=3, seed=16), True),
+}
+
+
+@pytest.mark.parametrize("lens", list(LENSES))
+def test_a_sighting_is_in_its_true_cell_or_uncertain(lens, tmp_path):
+    """Cars near cell borders and away from them, through lenses the vision knows or does not:
+    every sighting names the car's true cell or says it is uncertain. With the calibration,
+    a car 3 cm or more from every border is placed with confidence."""
+    camera, calibrated = LENSES[lens]
+    renderer = Renderer(GEOMETRY, camera)
+    vision = vision_for(renderer, tmp_path) if calibrated else Vision(GEOMETRY)
+    run = Run(vision, renderer)
+    rng = np.random.default_rng(len(lens))
+    confident = 0
+    for trial in range(6):
+        cars = placements(rng, 5, near_border=trial % 2 == 1)
+        scene = settled_scene(run, cars)
+        assert set(scene.cars) == {m for m, *_ in cars}
+        for marker, x, y, _ in cars:
+            seen = scene.cars[marker]
+            truth = tuple(GEOMETRY.cell_of(np.array([x, y])).tolist())
+            assert seen.uncertain or seen.cell == truth, (marker, seen, (x, y))
+            assert seen.uncertain == (seen.error_budget_m > CELL / 2 - np.abs(seen.offset).max())
+            confident += not seen.uncertain
+            if calibrated and trial % 2 == 0:
+                assert not seen.uncertain, seen
+    if calibrated or abs(camera.k1) < 0.1:  # a strong lens nobody described: all uncertain
+        assert confident > 0
