@@ -514,6 +514,20 @@ class Vision:
             )
         return out
 
+    def budgets_at_cells(self) -> np.ndarray:
+        """(rows, cols): the error budget (metres) of a car marker on the floor at each cell's
+        centre, the worse of two headings; what `udan-calibrate check` shows a lab."""
+        g = self.geometry
+        rows, cols = np.mgrid[0 : g.rows, 0 : g.cols]
+        centres = np.stack([(cols.ravel() + 0.5) * g.cell_m, (rows.ravel() + 0.5) * g.cell_m], 1)
+        worst = np.zeros(len(centres))
+        for heading in (0.0, math.pi / 4):
+            arena = centres[:, None] + square((0.0, 0.0), g.car_marker_m, heading)
+            image = self.fit.to_image(arena)
+            sides = np.linalg.norm(np.roll(image, -1, axis=1) - image, axis=2).mean(1)
+            worst = np.maximum(worst, self._error_budgets(arena, sides))
+        return worst.reshape(g.rows, g.cols)
+
     def _error_budgets(self, arena: np.ndarray, image_sides: np.ndarray) -> np.ndarray:
         """Per marker (arena corners (n, 4, 2), mean image sides (n,)): how far its true position
         may be from the measured one (metres); see `CarSighting.error_budget_m`."""

@@ -356,3 +356,43 @@ class Renderer:
             cv2.add(frame, self._noise[0, off : off + h], dst=frame)
             cv2.subtract(frame, self._noise[1, off : off + h], dst=frame)
         return frame
+
+
+def render_plane(
+    texture: np.ndarray,
+    metres_per_texel: float,
+    pose: tuple[np.ndarray, np.ndarray],
+    camera_matrix: np.ndarray,
+    dist_coeffs: np.ndarray,
+    size: tuple[int, int],
+    background: float = OUTSIDE,
+) -> np.ndarray:
+    """A flat printed sheet (a calibration board: `texture`, texel (0, 0) at its origin, x and
+    y along its columns and rows) seen by a camera with lens distortion, `pose` = (rvec, tvec)
+    sheet -> camera, as a grayscale (uint8) image of `size` (width, height): the views a lab
+    takes to calibrate its camera."""
+    w, h = size
+    gu = np.arange(0, w + MAP_STEP, MAP_STEP, dtype=np.float64)
+    gv = np.arange(0, h + MAP_STEP, MAP_STEP, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    pix = np.stack([uu, vv], -1).reshape(-1, 1, 2)
+    norm = cv2.undistortPoints(pix, camera_matrix, dist_coeffs, criteria=_UNDISTORT).reshape(-1, 2)
+    r = cv2.Rodrigues(np.asarray(pose[0], dtype=np.float64))[0]
+    t = np.asarray(pose[1], dtype=np.float64).reshape(3)
+    rays = np.column_stack([norm, np.ones(len(norm))]) @ r  # sheet coordinates, per row
+    origin = -r.T @ t  # the camera in sheet coordinates
+    along = -origin[2] / rays[:, 2]
+    hits = origin[:2] + rays[:, :2] * along[:, None]
+    hits[along <= 0] = -1e6  # behind the camera: off the sheet
+    coarse = (hits / metres_per_texel - 0.5).reshape(len(gv), len(gu), 2).astype(np.float32)
+    mx = np.tile(np.arange(w, dtype=np.float32) / MAP_STEP, (h, 1))
+    my = np.tile((np.arange(h, dtype=np.float32) / MAP_STEP)[:, None], (1, w))
+    fine = cv2.remap(coarse, mx, my, cv2.INTER_LINEAR)
+    return cv2.remap(
+        texture,
+        fine[..., 0],
+        fine[..., 1],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=background,
+    )
