@@ -302,7 +302,7 @@ def check_arena(
     )
     for marker, corners in sorted(fit.corners.items()):
         error = np.linalg.norm(
-            fit.to_image(geometry.corner_points()[marker]) - _distorted(fit, corners), axis=1
+            fit.to_image(geometry.corner_points()[marker]) - fit.distort(corners), axis=1
         )
         lines.append(
             f"  marker {marker}: reprojection error {np.sqrt(np.mean(error**2)):.2f} px RMS, "
@@ -327,18 +327,6 @@ def check_arena(
             raise CalibrateError(f"--out {picture}: cannot write an image there")
         lines.append(f"picture of the detected arena: {picture}")
     return lines
-
-
-def _distorted(fit, undistorted: np.ndarray) -> np.ndarray:
-    """Image pixels as detected of undistorted pixel points."""
-    cal = fit.calibration
-    if cal is None:
-        return undistorted
-    k = cal.camera_matrix
-    normal = cv2.undistortPoints(undistorted.reshape(-1, 1, 2), k, None)
-    world = cv2.convertPointsToHomogeneous(normal).reshape(-1, 3)
-    pix, _ = cv2.projectPoints(world, np.zeros(3), np.zeros(3), k, cal.dist_coeffs)
-    return pix.reshape(-1, 2)
 
 
 def draw_arena(image: np.ndarray, vision: Vision) -> np.ndarray:

@@ -192,13 +192,18 @@ class ArenaFit:
         xy = np.asarray(xy, dtype=np.float64)
         flat = xy.reshape(-1, 1, 2)
         pix = cv2.perspectiveTransform(flat, np.linalg.inv(self.plane_homography(height)))
+        return self.distort(pix).reshape(xy.shape)
+
+    def distort(self, pts: np.ndarray) -> np.ndarray:
+        """Image pixels as the camera shows them of undistorted pixel points `pts` (..., 2)."""
         cal = self.calibration
-        if cal is not None:
-            k = cal.camera_matrix
-            normal = cv2.undistortPoints(pix, k, None)  # pixels -> normalised coordinates
-            world = cv2.convertPointsToHomogeneous(normal).reshape(-1, 3)
-            pix, _ = cv2.projectPoints(world, np.zeros(3), np.zeros(3), k, cal.dist_coeffs)
-        return pix.reshape(xy.shape)
+        if cal is None:
+            return pts
+        k = cal.camera_matrix
+        normal = cv2.undistortPoints(pts.reshape(-1, 1, 2), k, None)  # to normalised coordinates
+        world = cv2.convertPointsToHomogeneous(normal).reshape(-1, 3)
+        pix, _ = cv2.projectPoints(world, np.zeros(3), np.zeros(3), k, cal.dist_coeffs)
+        return pix.reshape(pts.shape)
 
     def undistort(self, pts: np.ndarray) -> np.ndarray:
         if self.calibration is None:

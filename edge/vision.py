@@ -201,9 +201,13 @@ class _ExpectedSizes:
 def _contours(quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Contour lengths (as :func:`udan.edge.detect.shape_of`) and shortest sides of quads
     (n, 4, 2)."""
-    sides = np.roll(quads, -1, axis=1) - quads
-    length = np.abs(sides).max(-1).sum(-1)
-    return length, np.hypot(sides[..., 0], sides[..., 1]).min(-1)
+    length = np.abs(np.roll(quads, -1, axis=1) - quads).max(-1).sum(-1)
+    return length, _side_lengths(quads).min(-1)
+
+
+def _side_lengths(quads: np.ndarray) -> np.ndarray:
+    """The four side lengths (n, 4) of quads (n, 4, 2)."""
+    return np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=2)
 
 
 def _normalised(patch: np.ndarray) -> np.ndarray:
@@ -524,14 +528,14 @@ class Vision:
         for heading in (0.0, math.pi / 4):
             arena = centres[:, None] + square((0.0, 0.0), g.car_marker_m, heading)
             image = self.fit.to_image(arena)
-            sides = np.linalg.norm(np.roll(image, -1, axis=1) - image, axis=2).mean(1)
+            sides = _side_lengths(image).mean(1)
             worst = np.maximum(worst, self._error_budgets(arena, sides))
         return worst.reshape(g.rows, g.cols)
 
     def _error_budgets(self, arena: np.ndarray, image_sides: np.ndarray) -> np.ndarray:
         """Per marker (arena corners (n, 4, 2), mean image sides (n,)): how far its true position
         may be from the measured one (metres); see `CarSighting.error_budget_m`."""
-        edges = np.linalg.norm(np.roll(arena, -1, axis=1) - arena, axis=2)
+        edges = _side_lengths(arena)
         side = edges.mean(1)
         diagonals = np.linalg.norm(arena[:, 2:] - arena[:, :2], axis=2)
         unsquare = np.maximum(
