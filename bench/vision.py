@@ -2,11 +2,11 @@
 
 Five cars drive a random walk over the free cells of a find_water-like layout, one cell per 8
 frames (200 ms at 40 FPS), pausing now and then, seen by a tilted camera with lens distortion,
-noise and blur (its calibration file given to the vision). Everything runs on one OpenCV
-thread in this process, frames rendered on the fly (the renderer's time is reported too). The
-vision's CPU time is reported beside its wall time, and the full-frame search's time and the load
-average show how busy the machine was: on a shared 2-core machine, wall-time tails are mostly
-other processes' time slices.
+noise and blur (its calibration file and the fleet's car markers given to the vision, as
+`udan-edge` gives them). Everything runs on one OpenCV thread in this process, frames rendered
+on the fly (the renderer's time is reported too). The vision's CPU time is reported beside its
+wall time, and the full-frame search's time and the load average show how busy the machine was:
+on a shared 2-core machine, wall-time tails are mostly other processes' time slices.
 Accuracy is measured against the renderer's ground truth after the first two sweeps; the exact
 cell is claimed for cars at least 3 cm from a cell border.
 
@@ -293,7 +293,7 @@ def main() -> int:
         size = (camera.width, camera.height)
         calibration = CameraCalibration(renderer.camera_matrix, renderer.dist_coeffs, size)
         save_calibration(path, calibration)
-        vision = Vision(geometry, calibration_file=path)
+        vision = Vision(geometry, car_markers=range(5, 10), calibration_file=path)
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, geometry.dictionary))
     reference = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
     truth = walks(geometry, 5, frames, seed=0)
