@@ -298,12 +298,14 @@ class ArenaFit:
 
     @staticmethod
     def _fit_pose(src: np.ndarray, dst: np.ndarray, k: np.ndarray) -> tuple | None:
-        """solvePnP on the (undistorted) corners: IPPE, the planar solution (a Levenberg-
-        Marquardt refinement after it moved no test figure and took 1 ms a fit)."""
+        """solvePnP on the (undistorted) corners: the planar solution (IPPE), refined
+        (Levenberg-Marquardt: 0.15 ms a fit; without it, three markers under a 50° tilt put
+        cars up to 7 mm off instead of 5)."""
         world = np.column_stack([dst, np.zeros(len(dst))])
         ok, rvec, tvec = cv2.solvePnP(world, src, k, None, flags=cv2.SOLVEPNP_IPPE)
         if not ok:
             return None
+        rvec, tvec = cv2.solvePnPRefineLM(world, src, k, None, rvec, tvec)
         r = cv2.Rodrigues(rvec)[0]
         t = tvec.reshape(3)
         to_image = k @ np.column_stack([r[:, 0], r[:, 1], t])
