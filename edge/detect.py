@@ -83,13 +83,13 @@ class MarkerDetector:
         self.s = max(1, round(shape[0] / SEARCH_LINES))
 
     def scale_for(self, side: float) -> int:
-        """The coarsest downscale, at most the search resolution's, that leaves a marker of mean
-        side `side` (full-resolution pixels) MIN_MODULE_PX per module."""
+        """The coarsest downscale, at most the search resolution's, that leaves a marker whose
+        shortest side is `side` (full-resolution pixels) MIN_MODULE_PX per module."""
         return max(1, min(self.s, int(side / (self.modules * MIN_MODULE_PX))))
 
     def window_for(self, side: float, scale: int) -> int:
         """Adaptive-threshold window (odd, pixels of an image downscaled by `scale`) for markers
-        of mean side `side` (full resolution): about two modules, at most the search
+        whose shortest side is `side` (full resolution): about two modules, at most the search
         resolution's THRESHOLD_WINDOW. A wider window blurs a small marker's modules into its
         paper and it stops decoding."""
         widest = THRESHOLD_WINDOW * self.s // scale | 1
@@ -142,10 +142,10 @@ class MarkerDetector:
 
     @staticmethod
     def refine(img: np.ndarray, corners: np.ndarray) -> np.ndarray:
-        """`corners` (4, 2) of a large marker refined to a tenth of a pixel at full resolution
-        (cornerSubPix): the calibration markers' corners fix the camera model, and their misfit
-        measures the lens model's (contour refinement at the search resolution leaves each
-        corner up to a pixel inside the marker)."""
+        """`corners` (4, 2) of a large marker refined at full resolution (cornerSubPix): the
+        calibration markers' corners fix the camera model, and their misfit measures the lens
+        model's (contour refinement at the search resolution leaves corners about a pixel
+        inside the marker, which reads as a misfit of several millimetres)."""
         pts = corners.astype(np.float32).reshape(-1, 1, 2)
         cv2.cornerSubPix(img, pts, SUBPIX_WINDOW, (-1, -1), _SUBPIX_CRITERIA)
         return pts.reshape(4, 2).astype(np.float64)

@@ -19,13 +19,20 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   sweep decodes only what is new: a car that joined or that its track lost, a changed cell, a
   calibration marker after a camera move. A sweep takes 12 frames (300 ms at 40 FPS): that is
   how long a new car or a changed obstacle takes to appear; tracked cars do not wait for it.
-- Geometry (:mod:`udan.edge.calibration`): a homography (undistorted image pixels -> arena metres)
-  fitted to the corners of the calibration markers, averaged over sightings. One of them is
-  re-checked every frame where it was last seen; shifted by more than `move_tolerance_px`, the
-  camera has moved: the fit and the cell readings are dropped and the scene says it is
-  uncalibrated (no cars, no cells) rather than wrong, until the sweep has found three
-  calibration markers again, with no restart. Lens distortion (a calibration file) is removed
-  from detected corners, not frames.
+  Its size gates, search resolution and threshold window follow the size markers should have
+  where each tile looks, from the camera model (:class:`_ExpectedSizes`): a tilted camera sees
+  markers near it several times larger than far ones, and labs print car markers at other
+  sizes than configured (half to twice). Car markers too small for the search resolution are
+  looked for by a second, full-resolution sweep while a listed car is untracked.
+- Geometry (:mod:`udan.edge.calibration`): the camera model, fitted to the corners of the
+  calibration markers (averaged over sightings), maps a car marker through the plane at its
+  height (`marker_heights`, from the fleet file) to the floor. One of them is re-checked every
+  frame where it was last seen; shifted by more than `move_tolerance_px`, the camera has moved:
+  the fit and the cell readings are dropped and the scene says it is uncalibrated (no cars, no
+  cells) rather than wrong, until the sweep has found three calibration markers again, with no
+  restart. Lens distortion (a calibration file) is removed from detected corners, not frames.
+- Every car sighting carries an error budget; closer to a cell border than that it is
+  uncertain, and the control core holds the car rather than command it from a guessed cell.
 - A cell marker that one sweep misses stays until the next one misses it too, so noise cannot
   make an obstacle flicker. The surround target moves, so it is tracked like a car (by its id:
   one target; its window allows for a hop to the next cell) and reported as the frame's
