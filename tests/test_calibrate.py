@@ -70,7 +70,7 @@ def test_the_board_prints_at_its_true_size_and_reads_back(tmp_path, capsys):
     assert code == 0 and len(ids) == 6 * 4  # every inner corner of a 7x5 board
 
 
-@pytest.mark.parametrize("k1", [-0.15, 0.1])
+@pytest.mark.parametrize("k1", [-0.15, pytest.param(0.1, marks=pytest.mark.slow)])
 def test_camera_calibration_recovers_the_lens_from_20_views(k1, tmp_path, capsys):
     focal = 1000.0
     k = np.array([[focal, 0, 639.5], [0, focal, 399.5], [0, 0, 1]])
