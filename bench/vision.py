@@ -2,23 +2,35 @@
 
 Five cars drive a random walk over the free cells of a find_water-like layout, one cell per 8
 frames (200 ms at 40 FPS), pausing now and then, seen by a tilted camera with lens distortion,
-noise and blur (its calibration file given to the vision). Everything runs on one OpenCV
-thread in this process, frames rendered on the fly (the renderer's time is reported too). The
-vision's CPU time is reported beside its wall time, and the full-frame search's time and the load
-average show how busy the machine was: on a shared 2-core machine, wall-time tails are mostly
-other processes' time slices.
+noise and blur (its calibration file and the fleet's car markers given to the vision, as
+`udan-edge` gives them). Everything runs on one OpenCV thread in this process, frames rendered
+on the fly (the renderer's time is reported too). The vision's CPU time is reported beside its
+wall time, and the full-frame search's time and the load average show how busy the machine was:
+on a shared 2-core machine, wall-time tails are mostly other processes' time slices.
 Accuracy is measured against the renderer's ground truth after the first two sweeps; the exact
-cell is claimed for cars at least 3 cm from a cell border. Prints one JSON object.
+cell is claimed for cars at least 3 cm from a cell border.
+
+Then the condition table: the conditions a real lab has (a tilted, rolled camera, lenses with and
+without their calibration, car markers printed at other sizes, markers on top of the cars), each
+a short run of the same walks, for the vision and, beside it, OpenCV's ArucoDetector on the full
+frame with a homography from the four corner markers (every fifth frame: it is slow). Per
+condition: sightings found, in a wrong cell and uncertain (in % of car-frames), the median
+position error and the p99 of the CPU time each takes per frame (wall time on a loaded machine
+is mostly other processes' time slices; CPU time is comparable between runs). Prints one JSON
+object; ``--table`` prints the condition table as Markdown instead.
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import math
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -85,8 +97,193 @@ def percentiles(ms: list[float]) -> dict[str, float]:
     }
 
 
+@dataclasses.dataclass(frozen=True)
+class Condition:
+    """One lab condition: the camera, the car markers as printed and raised, and whether the
+    vision has the lens's calibration file."""
+
+    name: str
+    camera: CameraModel
+    marker_scale: float = 1.0
+    """Printed car marker side over the configured one."""
+    height_m: float = 0.0
+    """Car markers above the floor."""
+    calibrated: bool = True
+
+
+def _camera(**kw: float) -> CameraModel:
+    return CameraModel(noise_sigma=3, blur_sigma=0.7, **kw)
+
+
+CONDITIONS = (
+    Condition("overhead", _camera()),
+    Condition("tilt 20°", _camera(tilt_deg=20)),
+    Condition("tilt 40°", _camera(tilt_deg=40)),
+    Condition("tilt 60°", _camera(tilt_deg=60)),
+    Condition("tilt 35°, roll 15°, yaw 10°", _camera(tilt_deg=35, roll_deg=15, yaw_deg=10)),
+    Condition("markers 0.5×", _camera(), marker_scale=0.5),
+    Condition("markers 2×", _camera(), marker_scale=2.0),
+    Condition("markers 10 cm up", _camera(tilt_deg=15), height_m=0.10),
+    Condition("markers 15 cm up", _camera(tilt_deg=15), height_m=0.15),
+    Condition("k1 +0.2, calibrated", _camera(k1=0.2)),
+    Condition("k1 −0.2, calibrated", _camera(k1=-0.2)),
+    Condition("k1 +0.15, no calibration", _camera(k1=0.15), calibrated=False),
+    Condition(
+        "tilt 40°, k1 −0.1, 0.75×, 10 cm up",
+        _camera(tilt_deg=40, k1=-0.1),
+        marker_scale=0.75,
+        height_m=0.10,
+    ),
+)
+CONDITION_FRAMES = 150
+OPENCV_EVERY = 5
+"""Prime to FRAMES_PER_CELL, so the reference sees cars at every phase of their moves."""
+
+
+class FullFrameAruco:
+    """The reference: OpenCV's ArucoDetector with its defaults on the whole frame, a homography
+    from the corner markers it finds (undistorted with the calibration when there is one)."""
+
+    def __init__(self, geometry: ArenaGeometry, calibration: CameraCalibration | None) -> None:
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, geometry.dictionary))
+        self.detector = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
+        self.corners = geometry.corner_points()
+        self.calibration = calibration
+
+    def _undistort(self, pts: np.ndarray) -> np.ndarray:
+        cal = self.calibration
+        if cal is None:
+            return pts
+        flat = pts.reshape(-1, 1, 2).astype(np.float64)
+        k = cal.camera_matrix
+        return cv2.undistortPoints(flat, k, cal.dist_coeffs, P=k).reshape(pts.shape)
+
+    def cars(self, image: np.ndarray) -> dict[int, tuple[float, float]]:
+        """Arena (x, y) of every non-corner marker, when all four corner markers are seen."""
+        corners, ids, _ = self.detector.detectMarkers(image)
+        if ids is None:
+            return {}
+        seen = dict(zip(ids.ravel().tolist(), (c.reshape(4, 2) for c in corners), strict=True))
+        if not all(m in seen for m in range(4)):
+            return {}
+        src = self._undistort(np.concatenate([seen[m] for m in range(4)]))
+        hom, _ = cv2.findHomography(src, self.corners.reshape(-1, 2), 0)
+        out = {}
+        for marker, quad in seen.items():
+            arena = cv2.perspectiveTransform(self._undistort(quad).reshape(-1, 1, 2), hom)
+            out[marker] = tuple(arena.reshape(4, 2).mean(0).tolist())
+        return out
+
+
+def _tally() -> dict[str, list]:
+    return {"found": [], "wrong": [], "uncertain": [], "error": [], "ms": []}
+
+
+def _summary(tally: Mapping[str, list]) -> dict[str, float | None]:
+    n = len(tally["found"])
+    errors = tally["error"]
+    return {
+        "found_pct": round(100 * sum(tally["found"]) / n, 1),
+        "wrong_cell_pct": round(100 * sum(tally["wrong"]) / n, 2),
+        "uncertain_pct": round(100 * sum(tally["uncertain"]) / n, 1),
+        "median_error_mm": round(1000 * float(np.median(errors)), 1) if errors else None,
+        "p99_cpu_ms": round(float(np.percentile(tally["ms"], 99)), 2),
+    }
+
+
+def _score(tally: dict[str, list], geometry: ArenaGeometry, truth_xy, seen) -> None:
+    """One car in one frame: `seen` is None, or (xy, cell, uncertain)."""
+    tally["found"].append(seen is not None)
+    if seen is None:
+        tally["wrong"].append(False)
+        tally["uncertain"].append(False)
+        return
+    xy, cell, uncertain = seen
+    tally["uncertain"].append(uncertain)
+    tally["wrong"].append(not uncertain and cell != tuple(geometry.cell_of(np.array(truth_xy))))
+    tally["error"].append(math.dist(xy, truth_xy))
+
+
+def run_condition(condition: Condition, geometry: ArenaGeometry, frames: int) -> dict:
+    """The vision and the full-frame reference on `frames` frames of one condition."""
+    printed = dataclasses.replace(
+        geometry, car_marker_m=geometry.car_marker_m * condition.marker_scale
+    )
+    markers = range(5, 10)
+    heights = {m: condition.height_m for m in markers}
+    renderer = Renderer(printed, condition.camera, marker_heights=heights)
+    cam = condition.camera
+    calibration = CameraCalibration(
+        renderer.camera_matrix, renderer.dist_coeffs, (cam.width, cam.height)
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "camera.yaml")
+        save_calibration(path, calibration)
+        vision = Vision(
+            geometry,
+            car_markers=markers,
+            calibration_file=path if condition.calibrated else None,
+            marker_heights=heights,
+        )
+    reference = FullFrameAruco(geometry, calibration if condition.calibrated else None)
+    truth = walks(geometry, len(markers), frames, seed=1)
+    ours, theirs = _tally(), _tally()
+    warmup = 2 * vision.sweep_frames
+    for i in range(frames):
+        cars = [(m, x, y, h) for m, (x, y, h) in zip(markers, truth[i], strict=True)]
+        image = renderer.render(cars, CELLS)
+        c0 = time.thread_time_ns()
+        scene = vision.process(Frame(image, i, i))
+        cpu_ms = (time.thread_time_ns() - c0) / 1e6
+        if i < warmup:
+            continue
+        ours["ms"].append(cpu_ms)
+        for m, x, y, _ in cars:
+            s = scene.cars.get(m)
+            seen = None if s is None else (s.xy, s.cell, s.uncertain)
+            _score(ours, geometry, (x, y), seen)
+        if i % OPENCV_EVERY == 0:
+            c0 = time.thread_time_ns()
+            found = reference.cars(image)
+            theirs["ms"].append((time.thread_time_ns() - c0) / 1e6)
+            for m, x, y, _ in cars:
+                xy = found.get(m)
+                seen = None if xy is None else (xy, tuple(geometry.cell_of(np.array(xy))), False)
+                _score(theirs, geometry, (x, y), seen)
+    return {"condition": condition.name, "vision": _summary(ours), "opencv": _summary(theirs)}
+
+
+def markdown(rows: list[dict]) -> str:
+    """The condition table as Markdown: the vision's figures, OpenCV's beside them."""
+    lines = [
+        "| condition | found % | wrong cell % | uncertain % | median error mm | p99 CPU ms "
+        "| OpenCV found % | OpenCV wrong cell % | OpenCV median error mm | OpenCV p99 CPU ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        v, o = row["vision"], row["opencv"]
+        lines.append(
+            f"| {row['condition']} | {v['found_pct']} | {v['wrong_cell_pct']} "
+            f"| {v['uncertain_pct']} | {v['median_error_mm']} | {v['p99_cpu_ms']} "
+            f"| {o['found_pct']} | {o['wrong_cell_pct']} | {o['median_error_mm']} "
+            f"| {o['p99_cpu_ms']} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--table", action="store_true", help="print only the condition table, as Markdown"
+    )
+    args = parser.parse_args()
     cv2.setNumThreads(1)
+    condition_frames = int(os.environ.get("BENCH_CONDITION_FRAMES", CONDITION_FRAMES))
+    if args.table:
+        rows = [run_condition(c, ArenaGeometry(), condition_frames) for c in CONDITIONS]
+        print(markdown(rows))
+        print(f"\n(load average {os.getloadavg()[0]:.2f}, {condition_frames} frames each)")
+        return 0
     frames = int(os.environ.get("BENCH_FRAMES", "500"))
     geometry = ArenaGeometry()
     camera = CameraModel(tilt_deg=12, yaw_deg=3, k1=-0.06, k2=0.01, noise_sigma=3, blur_sigma=0.7)
@@ -96,7 +293,7 @@ def main() -> int:
         size = (camera.width, camera.height)
         calibration = CameraCalibration(renderer.camera_matrix, renderer.dist_coeffs, size)
         save_calibration(path, calibration)
-        vision = Vision(geometry, calibration_file=path)
+        vision = Vision(geometry, car_markers=range(5, 10), calibration_file=path)
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, geometry.dictionary))
     reference = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
     truth = walks(geometry, 5, frames, seed=0)
@@ -156,6 +353,7 @@ def main() -> int:
             "static_cells_exact": scene.cells == expected,
         },
         "meets_target": timing["p99"] <= TARGET_P99_MS,
+        "conditions": [run_condition(c, geometry, condition_frames) for c in CONDITIONS],
     }
     json.dump(result, sys.stdout, indent=2)
     print()

@@ -170,7 +170,12 @@ def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
 async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
     geometry = ArenaGeometry()
     cars = load_fleet(args.fleet)
-    settings = VisionSettings(geometry, tuple(c.marker for c in cars), args.calibration)
+    settings = VisionSettings(
+        geometry,
+        tuple(c.marker for c in cars),
+        args.calibration,
+        {c.marker: c.marker_height_m for c in cars},
+    )
     # the perception process starts first and opens the camera while the model loads
     perception = ProcessPerception(args.camera, settings) if args.perception == "process" else None
     try:

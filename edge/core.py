@@ -25,6 +25,7 @@ import numpy as np
 
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Cell, Change, Fleet, FleetState
+from udan.envs.rules import WAIT
 
 if TYPE_CHECKING:  # data the core reads; it runs neither the link nor the vision
     from udan.edge.link import CommandReport, DispatchReport
@@ -68,6 +69,7 @@ class ControlCore:
         self.timing = timing
         self._clock = clock
         self.static: dict[str, frozenset[Cell]] | None = None  # the last scene's cell markers
+        self.uncertain: set[int] = set()  # cars the last scene could not place in a cell
         self.not_before_ns = 0  # frames captured earlier are stale: not analysed
         self.stopped = False  # an emergency stop: no step is decided any more
         self._rehearsed = False  # the last step was rehearsed since the last decision
@@ -81,15 +83,24 @@ class ControlCore:
         return t_capture_ns >= self.not_before_ns
 
     def see(self, scene: Scene, ready: Iterable[int], now: int) -> Change:
-        """Fold one frame's scene and the link's ready cars at ``now`` into the fleet."""
+        """Fold one frame's scene and the link's ready cars at ``now`` into the fleet. A car
+        seen too near a cell border to name its cell (`uncertain`) keeps its last cell and is
+        held by the next step; one never placed yet is not taken into the fleet until it is."""
         self.static = scene.cells
         fleet, seen = self.fleet, []
+        self.uncertain = set()
         for marker, sighting in scene.cars.items():
-            if sighting.inside:
-                seen.append(marker)
-                car = fleet.car_of_marker.get(marker)
+            if not sighting.inside:
+                continue
+            car = fleet.car_of_marker.get(marker)
+            if not sighting.uncertain:
                 if car is not None:
                     fleet.cell[car] = sighting.cell
+            elif car is None or car not in fleet.cell:
+                continue
+            else:
+                self.uncertain.add(car)
+            seen.append(marker)
         return fleet.update(seen, ready, now)
 
     def all_seen(self, scene: Scene) -> bool:
@@ -148,8 +159,17 @@ class ControlCore:
         timed_out = now - self._stepped_at > self.timing.step_timeout_ns
         if not (fresh_view or timed_out):
             return None
+        # an uncalibrated frame (calibration markers hidden, the camera knocked) places no car
+        doubted = self.uncertain if scene.calibrated else fleet.slot.keys()
+        held = {c: WAIT for c in doubted if c in fleet.slot and c not in moving}
         return fleet.snapshot(
-            scene.cells, self._others(scene), moving, scene.frame_index, scene.t_capture_ns
+            scene.cells,
+            self._others(scene),
+            {**moving, **held},
+            scene.frame_index,
+            scene.t_capture_ns,
+            frozenset(held),
+            scene.calibrated,
         )
 
     def commands_for(self, state: FleetState, now: int) -> tuple[Decision, dict[int, int], int]:
@@ -205,6 +225,9 @@ class ControlCore:
             "slow_sends": report.slow_sends,
             "late_sends": report.late_sends,
             "late_executions": late,
+            "uncertain": len(state.uncertain),
+            "uncertain_cars": sorted(state.uncertain),
+            "uncalibrated": int(not state.calibrated),
             "blocked": decision.blocked,
             "stopped": decision.stopped,
             "spans_ns": decision.spans_ns,

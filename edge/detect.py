@@ -25,6 +25,12 @@ THRESHOLD_OFFSET = 12
 """How much darker than its neighbourhood a pixel must be to count as ink. OpenCV's 7 lets sensor
 noise and faint floor lines (the grid) through as contours, every one of which costs; marker ink
 is more than a hundred grey levels darker than its paper."""
+MIN_MODULE_PX = 2.0
+"""Fewest image pixels per marker module a search resolution may leave a marker: below that it
+does not decode reliably, and the marker is searched for at a finer resolution instead."""
+SUBPIX_WINDOW = (3, 3)
+"""cornerSubPix half-window: inside one module of the smallest calibration marker."""
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 CELL_PIXELS = 8
 """Pixels per module when a candidate is unwarped to read its bits: more than OpenCV's 4 makes
 small markers (3 search pixels per module) decode reliably, for no measurable cost."""
@@ -39,6 +45,18 @@ def shape_of(corners: np.ndarray) -> tuple[float, float, float, float]:
     side = sum(math.hypot(u, v) for u, v in sides) / 4
     length = sum(max(abs(u), abs(v)) for u, v in sides)
     return (ax + bx + cx + dx) / 4, (ay + by + cy + dy) / 4, side, length
+
+
+def shortest_side(corners: np.ndarray) -> float:
+    """The shortest side of a marker's image quadrilateral: what decides whether its modules
+    can be read at a resolution (a tilted camera foreshortens markers to half their width)."""
+    (ax, ay), (bx, by), (cx, cy), (dx, dy) = corners.tolist()
+    return min(
+        math.hypot(bx - ax, by - ay),
+        math.hypot(cx - bx, cy - by),
+        math.hypot(dx - cx, dy - cy),
+        math.hypot(ax - dx, ay - dy),
+    )
 
 
 class MarkerDetector:
@@ -56,11 +74,26 @@ class MarkerDetector:
         )
         self.shape: tuple[int, int] | None = None
         self.s = 1
+        self.modules = self._detector.getDictionary().markerSize + 2
+        """Modules across a marker, its black border included."""
 
     def setup(self, shape: tuple[int, int]) -> None:
         """Frames of ``shape`` (h, w) from now on."""
         self.shape = shape
         self.s = max(1, round(shape[0] / SEARCH_LINES))
+
+    def scale_for(self, side: float) -> int:
+        """The coarsest downscale, at most the search resolution's, that leaves a marker whose
+        shortest side is `side` (full-resolution pixels) MIN_MODULE_PX per module."""
+        return max(1, min(self.s, int(side / (self.modules * MIN_MODULE_PX))))
+
+    def window_for(self, side: float, scale: int) -> int:
+        """Adaptive-threshold window (odd, pixels of an image downscaled by `scale`) for markers
+        whose shortest side is `side` (full resolution): about two modules, at most the search
+        resolution's THRESHOLD_WINDOW. A wider window blurs a small marker's modules into its
+        paper and it stops decoding."""
+        widest = THRESHOLD_WINDOW * self.s // scale | 1
+        return min(widest, max(3, round(2 * side / self.modules / scale) | 1))
 
     def detect(
         self,
@@ -68,13 +101,15 @@ class MarkerDetector:
         box: tuple[int, int, int, int],
         perimeter: tuple[float, float],
         scale: int | None = None,
+        side: float | None = None,
     ) -> list[tuple[int, np.ndarray]]:
         """Markers in the image window `box` (x0, y0, x1, y1) whose contour length is within
         `perimeter` (full-resolution pixels, see `shape_of`), searched at the search
         resolution; returns [(id, corners (4, 2) full-resolution pixels)], corners still
         approximate. A tight range is what keeps tracking cheap: a car's body and its label are
         squares too, and every candidate the detector has to decode costs. `scale` overrides
-        the search downscale factor (1: full resolution)."""
+        the search downscale factor (1: full resolution); `side`, the shortest side expected
+        (full-resolution pixels), sets the threshold window (:meth:`window_for`)."""
         s = self.s if scale is None else scale
         x0, y0, x1, y1 = box
         x1 -= (x1 - x0) % s
@@ -85,7 +120,7 @@ class MarkerDetector:
         if s > 1:
             roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
         off = np.array([x0 + (s - 1) / 2, y0 + (s - 1) / 2])
-        window = THRESHOLD_WINDOW * self.s // s | 1
+        window = THRESHOLD_WINDOW * self.s // s | 1 if side is None else self.window_for(side, s)
         ids, quads = self.markers(roi, (perimeter[0] / s, perimeter[1] / s), window)
         return list(zip(ids, quads * s + off, strict=True))
 
@@ -105,6 +140,16 @@ class MarkerDetector:
             return [], np.zeros((0, 4, 2))
         return ids.ravel().tolist(), np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
 
+    @staticmethod
+    def refine(img: np.ndarray, corners: np.ndarray) -> np.ndarray:
+        """`corners` (4, 2) of a large marker refined at full resolution (cornerSubPix): the
+        calibration markers' corners fix the camera model, and their misfit measures the lens
+        model's (contour refinement at the search resolution leaves corners about a pixel
+        inside the marker, which reads as a misfit of several millimetres)."""
+        pts = corners.astype(np.float32).reshape(-1, 1, 2)
+        cv2.cornerSubPix(img, pts, SUBPIX_WINDOW, (-1, -1), _SUBPIX_CRITERIA)
+        return pts.reshape(4, 2).astype(np.float64)
+
     def box(self, cx: float, cy: float, half: float) -> tuple[int, int, int, int]:
         """The image window of half side `half` around (cx, cy), clipped to the frame."""
         h, w = self.shape
@@ -116,15 +161,19 @@ class MarkerDetector:
         )
 
     def find(
-        self, img: np.ndarray, marker: int, cx: float, cy: float, half: float, length: float
+        self,
+        img: np.ndarray,
+        marker: int,
+        centre: tuple[float, float],
+        half: float,
+        length: float,
+        side: float,
     ) -> np.ndarray | None:
-        """`marker` near (cx, cy), its contour length near `length`, at full resolution: the
-        second chance for a small, noisy marker the search resolution failed to decode."""
-        hits = [
-            c
-            for m, c in self.detect(
-                img, self.box(cx, cy, half), (0.8 * length, 1.2 * length), scale=1
-            )
-            if m == marker
-        ]
+        """`marker` near `centre`, its contour length near `length` and shortest side near
+        `side`, at full resolution: the second chance for a small, noisy marker the search
+        resolution failed to decode."""
+        cx, cy = centre
+        box = self.box(cx, cy, half)
+        found = self.detect(img, box, (0.8 * length, 1.2 * length), scale=1, side=side)
+        hits = [c for m, c in found if m == marker]
         return min(hits, key=lambda c: math.dist(c.mean(0), (cx, cy))) if hits else None

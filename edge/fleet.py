@@ -54,6 +54,11 @@ class FleetState:
     """Index of the frame the step decides on."""
     t_capture_ns: int = 0
     """When that frame was captured."""
+    uncertain: Set[int] = frozenset()
+    """Cars the frame could not place in a cell with confidence: held (in `moving` with
+    ``wait``) on the cell they were last placed in."""
+    calibrated: bool = True
+    """Whether the frame's camera model placed anything (if not, every car is uncertain)."""
 
 
 class Fleet:
@@ -127,12 +132,23 @@ class Fleet:
         moving: Mapping[int, int],
         frame: int,
         t_capture_ns: int,
+        uncertain: Set[int] = frozenset(),
+        calibrated: bool = True,
     ) -> FleetState:
         """The fleet as a step decided now sees it."""
         slots = dict(self.slot)
         cells = {c: self.cell[c] for c in slots}
         return FleetState(
-            slots, set(self.fresh), cells, static, others, moving, frame, t_capture_ns
+            slots,
+            set(self.fresh),
+            cells,
+            static,
+            others,
+            moving,
+            frame,
+            t_capture_ns,
+            uncertain,
+            calibrated,
         )
 
     def reset(self) -> None:

@@ -101,10 +101,15 @@ class VisionSettings:
     geometry: ArenaGeometry = field(default_factory=ArenaGeometry)
     car_markers: tuple[int, ...] | None = None
     calibration_file: str | None = None
+    marker_heights: dict[int, float] = field(default_factory=dict)
+    """Height of each car marker above the floor (metres), from the fleet file."""
 
     def build(self) -> Vision:
         return Vision(
-            self.geometry, car_markers=self.car_markers, calibration_file=self.calibration_file
+            self.geometry,
+            car_markers=self.car_markers,
+            calibration_file=self.calibration_file,
+            marker_heights=self.marker_heights,
         )
 
     def to_json(self) -> str:
@@ -118,6 +123,7 @@ class VisionSettings:
             ArenaGeometry(**fields["geometry"]),
             None if markers is None else tuple(markers),
             fields["calibration_file"],
+            {int(marker): height for marker, height in fields["marker_heights"].items()},
         )
 
 

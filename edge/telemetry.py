@@ -151,7 +151,7 @@ class Telemetry:
         self.cars = record["cars"]
         for key in (
             "on_time", "retried", "missed", "not_ready", "slow_sends", "late_sends",
-            "late_executions", "blocked", "stopped",
+            "late_executions", "blocked", "stopped", "uncertain", "uncalibrated",
         ):  # fmt: skip
             self.counts[key] += record.get(key, 0)
         for car, outcome in record.get("outcomes", {}).items():

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from udan.edge.detect import THRESHOLD_WINDOW, MarkerDetector, shape_of
+from udan.edge.detect import MarkerDetector, shape_of, shortest_side
 from udan.edge.geometry import RESERVED_IDS, TARGET_ID
 
 SIZE_GROUP = 1.15
@@ -34,6 +34,8 @@ class Track:
     index: int
     shape: tuple[float, float, float, float]
     """`shape_of(corners)`."""
+    shortest: float
+    """`shortest_side(corners)`."""
     velocity: tuple[float, float] = (0.0, 0.0)
     """Pixels per frame index."""
     misses: int = 0
@@ -69,6 +71,11 @@ class CarTracker:
             return marker in self._car_ids
         return marker not in RESERVED_IDS
 
+    def missing(self) -> bool:
+        """Whether a car may be in view untracked: a listed car without a track (with no list,
+        any car could join)."""
+        return self._car_ids is None or not self._car_ids <= self.tracks.keys()
+
     def track(self, img: np.ndarray, index: int) -> dict[int, np.ndarray]:
         """Each tracked car, searched for in a window around its predicted position; returns
         the approximate corners of those found. Windows of cars whose markers look alike in
@@ -83,28 +90,31 @@ class CarTracker:
             half = (1.3 * side + math.hypot(vx, vy) * gap + 8) * (1 + 0.5 * tr.misses)
             if marker == TARGET_ID or tr.misses:  # a hop, or a car faster than its velocity
                 half += self._target_jump * side
-            wanted.append((length, marker, cx + vx * gap, cy + vy * gap, half))
+            scale = self._detector.scale_for(tr.shortest)
+            wanted.append((scale, length, marker, cx + vx * gap, cy + vy * gap, half, tr.shortest))
         wanted.sort()
         found: dict[int, np.ndarray] = {}
         while wanted:
-            n = sum(1 for w in wanted if w[0] <= SIZE_GROUP * wanted[0][0])
-            found.update(self._track_group(img, wanted[:n]))
+            scale, length = wanted[0][:2]
+            n = sum(1 for w in wanted if w[0] == scale and w[1] <= SIZE_GROUP * length)
+            found.update(self._track_group(img, [w[1:] for w in wanted[:n]], scale))
             wanted = wanted[n:]
         return found
 
     def _track_group(
-        self, img: np.ndarray, group: list[tuple[float, int, float, float, float]]
+        self, img: np.ndarray, group: list[tuple[float, int, float, float, float, float]], s: int
     ) -> dict[int, np.ndarray]:
-        """Search the windows of `group` [(contour length, marker, x, y, half side)] stacked
-        into one image (windows of one common size, shifted to lie inside the frame)."""
+        """Search the windows of `group` [(contour length, marker, x, y, half side, shortest
+        side)] stacked
+        into one image (windows of one common size, shifted to lie inside the frame), downscaled
+        by `s` (markers too small for the search resolution are tracked at a finer one)."""
         detector = self._detector
         h, w = detector.shape
-        s = detector.s
         size = min(s * math.ceil(2 * max(g[4] for g in group) / s), h - h % s, w - w % s)
         k = size // s
         stack = np.empty((k * len(group), k), np.uint8)
         origins = []
-        for i, (_, _, cx, cy, _) in enumerate(group):
+        for i, (_, _, cx, cy, _, _) in enumerate(group):
             x0 = min(max(int(cx - size / 2), 0), w - size)
             y0 = min(max(int(cy - size / 2), 0), h - size)
             window = img[y0 : y0 + size, x0 : x0 + size]
@@ -116,11 +126,12 @@ class CarTracker:
                 stack[i * k : (i + 1) * k] = window
             origins.append((x0 + (s - 1) / 2, y0 + (s - 1) / 2 - i * size))
         bounds = (0.8 * group[0][0] / s, 1.2 * group[-1][0] / s)
-        ids, quads = detector.markers(stack, bounds, THRESHOLD_WINDOW)
+        side = min(g[5] for g in group)
+        ids, quads = detector.markers(stack, bounds, detector.window_for(side, s))
         found: dict[int, np.ndarray] = {}
         for marker, quad in zip(ids, quads, strict=True):
             i = int(quad[:, 1].mean() // k)
-            _, want, cx, cy, _ = group[i]
+            _, want, cx, cy, _, _ = group[i]
             if marker != want:
                 continue
             full = quad * s + origins[i]
@@ -128,9 +139,9 @@ class CarTracker:
                 found[marker].mean(0), (cx, cy)
             ):
                 found[marker] = full
-        for length, marker, cx, cy, half in group:
+        for length, marker, cx, cy, half, side in group:
             if marker not in found and s > 1:
-                quad = detector.find(img, marker, cx, cy, half, length)
+                quad = detector.find(img, marker, (cx, cy), half, length, side)
                 if quad is not None:
                     found[marker] = quad
         return found
@@ -142,11 +153,12 @@ class CarTracker:
             shape = shape_of(corners)
             tr = self.tracks.get(marker)
             if tr is None or index <= tr.index:
-                self.tracks[marker] = Track(corners, index, shape)
+                self.tracks[marker] = Track(corners, index, shape, shortest_side(corners))
             else:
                 gap = index - tr.index
                 tr.velocity = ((shape[0] - tr.shape[0]) / gap, (shape[1] - tr.shape[1]) / gap)
                 tr.corners, tr.index, tr.shape, tr.misses = corners, index, shape, 0
+                tr.shortest = shortest_side(corners)
         for marker in [m for m, tr in self.tracks.items() if tr.index != index]:
             tr = self.tracks[marker]
             tr.misses += 1

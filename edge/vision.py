@@ -19,13 +19,20 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   sweep decodes only what is new: a car that joined or that its track lost, a changed cell, a
   calibration marker after a camera move. A sweep takes 12 frames (300 ms at 40 FPS): that is
   how long a new car or a changed obstacle takes to appear; tracked cars do not wait for it.
-- Geometry (:mod:`udan.edge.calibration`): a homography (undistorted image pixels -> arena metres)
-  fitted to the corners of the calibration markers, averaged over sightings. One of them is
-  re-checked every frame where it was last seen; shifted by more than `move_tolerance_px`, the
-  camera has moved: the fit and the cell readings are dropped and the scene says it is
-  uncalibrated (no cars, no cells) rather than wrong, until the sweep has found three
-  calibration markers again, with no restart. Lens distortion (a calibration file) is removed
-  from detected corners, not frames.
+  Its size gates, search resolution and threshold window follow the size markers should have
+  where each tile looks, from the camera model (:class:`_ExpectedSizes`): a tilted camera sees
+  markers near it several times larger than far ones, and labs print car markers at other
+  sizes than configured (half to twice). Car markers too small for the search resolution are
+  looked for by a second, full-resolution sweep while a listed car is untracked.
+- Geometry (:mod:`udan.edge.calibration`): the camera model, fitted to the corners of the
+  calibration markers (averaged over sightings), maps a car marker through the plane at its
+  height (`marker_heights`, from the fleet file) to the floor. One of them is re-checked every
+  frame where it was last seen; shifted by more than `move_tolerance_px`, the camera has moved:
+  the fit and the cell readings are dropped and the scene says it is uncalibrated (no cars, no
+  cells) rather than wrong, until the sweep has found three calibration markers again, with no
+  restart. Lens distortion (a calibration file) is removed from detected corners, not frames.
+- Every car sighting carries an error budget; closer to a cell border than that it is
+  uncertain, and the control core holds the car rather than command it from a guessed cell.
 - A cell marker that one sweep misses stays until the next one misses it too, so noise cannot
   make an obstacle flicker. The surround target moves, so it is tracked like a car (by its id:
   one target; its window allows for a hop to the next cell) and reported as the frame's
@@ -34,9 +41,10 @@ few candidates. This module puts the stages together (and sweeps); each concern 
 
 from __future__ import annotations
 
+import math
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -44,8 +52,21 @@ import numpy as np
 
 from udan.edge.calibration import ArenaFit, VisionError, load_calibration
 from udan.edge.camera import Frame
-from udan.edge.detect import MIN_CONTOUR, THRESHOLD_WINDOW, MarkerDetector, shape_of
-from udan.edge.geometry import CELL_KIND_IDS, CORNER_IDS, TARGET_ID, ArenaGeometry, heading_of
+from udan.edge.detect import (
+    MIN_CONTOUR,
+    THRESHOLD_WINDOW,
+    MarkerDetector,
+    shape_of,
+    shortest_side,
+)
+from udan.edge.geometry import (
+    CELL_KIND_IDS,
+    CORNER_IDS,
+    TARGET_ID,
+    ArenaGeometry,
+    heading_of,
+    square,
+)
 from udan.edge.tracking import CarTracker
 
 MASK = 1.15
@@ -56,6 +77,28 @@ body) is rejected at a glance instead of decoded."""
 TEMPLATE_MATCH = 0.9
 """Normalised correlation with its last decoded look above which a static marker is taken to be
 unchanged, and painted out instead of decoded again."""
+OVERLAP_LINES = 12
+"""Sweep tiles overlap by the frame height over this: more than the largest marker's half
+extent (a calibration marker, or a car marker printed twice as large, near a tilted camera)."""
+CAR_SCALES = (0.5, 2.0)
+"""Car markers are found printed from half to twice the configured side."""
+SIZE_GRID = 13
+"""Arena points per side at which expected marker sizes are computed."""
+SIZE_MARGIN = (0.8, 1.25)
+"""Slack on the expected sizes (between grid points, corner rounding, a camera just moved)."""
+BUDGET_FLOOR_M = 0.004
+"""The least error budget a sighting has (metres): corner refinement and image noise."""
+BUDGET_PIXELS = 1.0
+"""Image pixels of position error allowed for, at the marker's own scale."""
+MISFIT_GAIN = 10.0
+"""Times the fit's RMS misfit on the calibration marker corners that a position elsewhere may
+be off: an uncorrected lens (k1 from -0.2 to 0.2, tilt 0-60 degrees, roll) puts points between
+the markers up to 7.8 times as far off (measured on rendered frames)."""
+UNSQUARE_GAIN = 0.5
+"""Times its distance from a square that a marker's position may be off."""
+PARALLAX_DOUBT = 0.25
+"""Without a calibration, the focal length is estimated: this share of a raised marker's
+parallax correction is doubted."""
 _ARENA = ArenaGeometry()
 _KIND_OF_ID = {marker: kind for kind, marker in CELL_KIND_IDS.items()}
 
@@ -74,6 +117,13 @@ class CarSighting:
     offset: tuple[float, float]
     """(dx, dy) metres from the centre of `cell`."""
     inside: bool
+    uncertain: bool = False
+    """Closer to a cell border than `error_budget_m`: the cell may be the next one, so the
+    car is held (it waits) rather than commanded from a guessed cell."""
+    error_budget_m: float = 0.0
+    """How far the car may be from `xy`: the lens model's misfit on the calibration markers,
+    a pixel's size where the marker is, how far the marker is from a square, the parallax of
+    a raised marker seen through an estimated focal length."""
 
 
 @dataclass(frozen=True)
@@ -100,8 +150,71 @@ class _Known:
     """Its bounding box in the tile's search image."""
     template: np.ndarray
     """The box's pixels then, zero-mean and unit-norm."""
+    scale: int
+    """The downscale of the search image it was decoded in."""
     cell: tuple[str, tuple[int, int]] | None = None
     """(kind, (row, col)) once calibrated."""
+
+
+class _ExpectedSizes:
+    """How large markers should look across the image, from the camera model: on a grid of
+    arena points (the grid and its calibration markers), the contour lengths of car markers
+    printed at CAR_SCALES of their configured side, turned 0 or 45 degrees, on the floor or at
+    the highest car marker, and of cell and calibration markers; so the sweep accepts what may
+    be a marker where it looks and nothing else."""
+
+    def __init__(self, fit: ArenaFit, geometry: ArenaGeometry, top_m: float) -> None:
+        self.version = fit.version
+        """The fit these sizes were computed from (:attr:`ArenaFit.version`)."""
+        out = geometry.corner_gap_m + geometry.corner_marker_m
+        xs = np.linspace(-out, geometry.width_m + out, SIZE_GRID)
+        ys = np.linspace(-out, geometry.height_m + out, SIZE_GRID)
+        centres = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+        self.image = fit.to_image(centres)
+        small, large = CAR_SCALES
+        car_lo = side_lo = np.inf
+        car_hi = 0.0
+        for height in {0.0, top_m}:
+            for heading in (0.0, math.pi / 4):
+                marker = square((0.0, 0.0), geometry.car_marker_m, heading)
+                length, side = _contours(fit.to_image(centres[:, None] + marker, height))
+                car_lo = np.minimum(car_lo, small * length)
+                side_lo = np.minimum(side_lo, side)
+                car_hi = np.maximum(car_hi, large * length)
+        floor_m = max(geometry.cell_marker_m, geometry.corner_marker_m)
+        marker = square((0.0, 0.0), floor_m, 0.0)
+        floor_hi = _contours(fit.to_image(centres[:, None] + marker))[0]
+        self.lo = SIZE_MARGIN[0] * car_lo
+        self.hi = SIZE_MARGIN[1] * np.maximum(car_hi, floor_hi)
+        self.side = side_lo
+
+    def within(self, box: tuple[int, int, int, int]) -> tuple[float, float, float]:
+        """(shortest contour, longest contour, shortest side as configured) of a car
+        marker in the image window `box`, from the grid points it holds (or, when it holds
+        none, the nearest)."""
+        x0, y0, x1, y1 = box
+        u, v = self.image[:, 0], self.image[:, 1]
+        inside = (u >= x0) & (u < x1) & (v >= y0) & (v < y1)
+        if not inside.any():
+            near = np.hypot(u - (x0 + x1) / 2, v - (y0 + y1) / 2)
+            inside = near <= np.partition(near, 3)[3]
+        return (
+            float(self.lo[inside].min()),
+            float(self.hi[inside].max()),
+            float(self.side[inside].min()),
+        )
+
+
+def _contours(quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Contour lengths (as :func:`udan.edge.detect.shape_of`) and shortest sides of quads
+    (n, 4, 2)."""
+    length = np.abs(np.roll(quads, -1, axis=1) - quads).max(-1).sum(-1)
+    return length, _side_lengths(quads).min(-1)
+
+
+def _side_lengths(quads: np.ndarray) -> np.ndarray:
+    """The four side lengths (n, 4) of quads (n, 4, 2)."""
+    return np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=2)
 
 
 def _normalised(patch: np.ndarray) -> np.ndarray:
@@ -119,12 +232,15 @@ class Vision:
         *,
         car_markers: Iterable[int] | None = None,
         calibration_file: str | os.PathLike | None = None,
+        marker_heights: Mapping[int, float] | None = None,
         sweep_tiles: tuple[int, int] = (4, 3),
         lost_after: int = 3,
         move_tolerance_px: float = 2.0,
         max_residual_m: float = 0.05,
     ) -> None:
         self.geometry = geometry
+        self.marker_heights = {m: h for m, h in (marker_heights or {}).items() if h}
+        """Car marker id -> metres above the floor (markers not listed lie on it)."""
         calibration = None if calibration_file is None else load_calibration(calibration_file)
         self._sweep_tiles = sweep_tiles
         self.detector = MarkerDetector(geometry.dictionary)
@@ -146,6 +262,12 @@ class Vision:
         """Per sweep tile, the cell markers its last visit decoded or recognised."""
         self._cells: dict[str, frozenset[tuple[int, int]]] | None = None
         self._tile = 0
+        self._small_tiles: list[tuple[int, int, int, int]] = []
+        """Windows of the small-marker sweep (x0, y0, x1, y1): halves of the sweep tiles."""
+        self._small_tile = 0
+        self._sweeps = 0
+        """Sweeps of the whole image completed."""
+        self._sizes: _ExpectedSizes | None = None
 
     @property
     def sweep_frames(self) -> int:
@@ -168,10 +290,11 @@ class Vision:
         self.reset()
         self.detector.setup(shape)
         h, w = shape
+        self.fit.image_size = (w, h)
         s = self.detector.s
         nx, ny = self._sweep_tiles
-        overlap = s * round(h / 20 / s)
-        self._sweep_perimeter = (s * MIN_CONTOUR, h / 3)
+        overlap = s * round(h / OVERLAP_LINES / s)
+        self._sweep_perimeter = (s * MIN_CONTOUR, h / 2)
         xs = [s * round(w * i / nx / s) for i in range(nx + 1)]
         ys = [s * round(h * j / ny / s) for j in range(ny + 1)]
         for j in range(ny):
@@ -184,6 +307,11 @@ class Vision:
                     min(h, ys[j + 1] + overlap),
                 )
                 self._tiles.append((core, ext))
+                middle, half = (ext[1] + ext[3]) // 2, overlap // 2
+                self._small_tiles += [
+                    (ext[0], ext[1], ext[2], middle + half),
+                    (ext[0], middle - half, ext[2], ext[3]),
+                ]
         self._static = [[frozenset(), frozenset()] for _ in self._tiles]
         self._known = [[] for _ in self._tiles]
 
@@ -195,17 +323,22 @@ class Vision:
         is painted out first, so the detector decodes only what is new."""
         t = self._tile
         self._tile = (t + 1) % len(self._tiles)
+        self._sweeps += self._tile == 0
         (cx0, cy0, cx1, cy1), (x0, y0, x1, y1) = self._tiles[t]
-        s = self.detector.s
+        lo, hi, s, window = self._sweep_bounds(t)
+        x1 -= (x1 - x0) % s
+        y1 -= (y1 - y0) % s
         roi = img[y0:y1, x0:x1]
-        roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
+        if s > 1:
+            roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
+        else:
+            roi = roi.copy()  # painted over below
         off = np.array([x0 + (s - 1) / 2, y0 + (s - 1) / 2])
-        known = [k for k in self._known[t] if self._unchanged(roi, k)]
+        known = [k for k in self._known[t] if k.scale == s and self._unchanged(roi, k)]
         masks = [*cars.values(), *self.fit.quads.values(), *(k.quad for k in known)]
         masks += [k.quad for i, ks in enumerate(self._known) if i != t for k in ks]
-        self._paint(roi, off, masks)
-        lo, hi = self._sweep_bounds()
-        ids, quads = self.detector.markers(roi, (lo / s, hi / s), THRESHOLD_WINDOW)
+        self._paint(roi, off, masks, s)
+        ids, quads = self.detector.markers(roi, (lo / s, hi / s), window)
         corners_seen = {}
         for marker, quad in zip(ids, quads, strict=True):
             full = quad * s + off
@@ -218,7 +351,7 @@ class Vision:
                     bx1, by1 = np.ceil(quad.max(0)).astype(int) + 2
                     box = (int(bx0), int(by0), int(bx1), int(by1))
                     template = _normalised(roi[by0:by1, bx0:bx1])
-                    known.append(_Known(marker, full, box, template))
+                    known.append(_Known(marker, full, box, template, s))
             elif self.tracker.is_tracked(marker) and marker not in cars:
                 cars[marker] = full
         self._known[t] = known
@@ -246,13 +379,15 @@ class Vision:
             return False
         return float(_normalised(patch) @ known.template) >= TEMPLATE_MATCH
 
-    def _paint(self, roi: np.ndarray, off: np.ndarray, quads: list[np.ndarray]) -> None:
+    @staticmethod
+    def _paint(roi: np.ndarray, off: np.ndarray, quads: list[np.ndarray], scale: int) -> None:
         """Paint each marker `quads` (full resolution) over with its paper, in the search image
-        `roi` whose full-resolution origin is `off` (all at once: there are dozens)."""
+        `roi` downscaled by `scale` whose full-resolution origin is `off` (all at once: there
+        are dozens)."""
         if not quads:
             return
         limit = np.array(roi.shape[::-1]) - 1
-        local = (np.stack(quads) - off) / self.detector.s
+        local = (np.stack(quads) - off) / scale
         centre = local.mean(1, keepdims=True)
         paper = centre + (local - centre) * (MASK + 0.1)
         near = (paper.max(1) >= 0).all(1) & (paper.min(1) <= limit).all(1)
@@ -262,15 +397,48 @@ class Vision:
         for poly, v in zip(paint, value, strict=True):
             cv2.fillConvexPoly(roi, poly, v)
 
-    def _sweep_bounds(self) -> tuple[float, float]:
-        """Contour lengths the sweep accepts. The largest markers are the calibration and cell
-        markers (same size), so once calibration markers have been seen nothing much longer
-        is looked at: floor seams, such as the grid's lines, enclose squares too, and each one
-        in range would cost a decode. Until then, a marker side up to a twelfth of the frame."""
-        if not self.fit.quads:
-            return self._sweep_perimeter
-        longest = max(shape_of(q)[3] for q in self.fit.quads.values())
-        return self._sweep_perimeter[0], 1.4 * longest
+    def _sweep_bounds(self, tile: int) -> tuple[float, float, int, int]:
+        """Contour lengths (full-resolution pixels) the sweep of `tile` accepts, the downscale
+        to search it at and the threshold window there. Once the camera model is known, they
+        follow the markers' expected image size where the tile looks (:class:`_ExpectedSizes`):
+        floor seams, such as the grid's lines, enclose squares too, and each one in range would
+        cost a decode, while under a tilted camera a marker near it is several times one far
+        away. Until
+        then, a marker side up to an eighth of the frame, every other sweep at full
+        resolution (a far calibration marker of a tilted camera may be too small for the
+        search resolution)."""
+        if not self.calibrated:
+            scale = self.detector.s if self._sweeps % 2 == 0 else 1
+            return (*self._sweep_perimeter, scale, THRESHOLD_WINDOW * self.detector.s // scale | 1)
+        if self._sizes is None or self._sizes.version != self.fit.version:
+            self._sizes = _ExpectedSizes(
+                self.fit, self.geometry, max(self.marker_heights.values(), default=0.0)
+            )
+        _, ext = self._tiles[tile]
+        lo, hi, side = self._sizes.within(ext)
+        # markers printed smaller than configured are looked for every other sweep, at the
+        # resolution they need: most labs print them as configured, and it costs
+        scale = self.detector.scale_for(side)
+        return max(lo, scale * MIN_CONTOUR), hi, scale, self.detector.window_for(side, scale)
+
+    def _sweep_small(self, img: np.ndarray, cars: dict[int, np.ndarray]) -> None:
+        """One window of the small-marker sweep: car markers printed smaller than configured
+        may be too small for the search resolution, so while a car of the fleet is not tracked,
+        one window a frame (half a sweep tile) is searched at full resolution for
+        markers between the smallest car marker expected there and the configured size."""
+        if not self.calibrated or not self.tracker.missing():
+            return
+        t = self._small_tile
+        self._small_tile = (t + 1) % len(self._small_tiles)
+        box = self._small_tiles[t]
+        lo, _, side = self._sizes.within(box)
+        small = side * CAR_SCALES[0]
+        if self.detector.scale_for(small) >= self.detector.s:
+            return  # the main sweep reads them
+        hi = lo / CAR_SCALES[0] * SIZE_MARGIN[1] / SIZE_MARGIN[0]
+        for marker, quad in self.detector.detect(img, box, (lo, hi), scale=1, side=small):
+            if self.tracker.is_tracked(marker) and marker not in cars:
+                cars[marker] = quad
 
     def _check_corner(self, img: np.ndarray) -> dict[int, np.ndarray]:
         """Look for one calibration marker (a different one each frame) where it was last seen,
@@ -290,7 +458,12 @@ class Vision:
             return {marker: hits[0]}
         if (
             detector.s > 1
-            and (found := detector.find(img, marker, cx, cy, 2.5 * side, length)) is not None
+            and (
+                found := detector.find(
+                    img, marker, (cx, cy), 2.5 * side, length, shortest_side(quad)
+                )
+            )
+            is not None
         ):
             return {marker: found}
         self.fit.lost(marker)
@@ -320,15 +493,26 @@ class Vision:
         seen = [(m, tr) for m, tr in self.tracker.tracks.items() if tr.index == index]
         if not seen or not self.calibrated:
             return {}
-        arena = self.fit.to_arena(np.stack([tr.corners for _, tr in seen]))
+        arena = np.empty((len(seen), 4, 2))
+        heights = np.array([self.marker_heights.get(m, 0.0) for m, _ in seen])
+        for height in set(heights.tolist()):
+            on = heights == height
+            corners = np.stack([tr.corners for (_, tr), o in zip(seen, on, strict=True) if o])
+            arena[on] = self.fit.to_arena(corners, height)
         centres = arena.mean(1)
         cells = self.geometry.cell_of(centres)
         inside = self.geometry.inside(cells)
+        budgets = self._error_budgets(arena, np.array([tr.shape[2] for _, tr in seen]))
+        if self.fit.calibration is None and heights.any():
+            floor = self.fit.to_arena(np.stack([tr.corners for _, tr in seen])).mean(1)
+            budgets += PARALLAX_DOUBT * np.linalg.norm(floor - centres, axis=1)
+        half = self.geometry.cell_m / 2
         out = {}
         for k, (marker, _) in enumerate(seen):
             row, col = int(cells[k, 0]), int(cells[k, 1])
             cx, cy = self.geometry.cell_centre(row, col)
             x, y = float(centres[k, 0]), float(centres[k, 1])
+            budget = float(budgets[k])
             out[marker] = CarSighting(
                 marker=marker,
                 cell=(row, col),
@@ -336,8 +520,42 @@ class Vision:
                 heading=heading_of(arena[k]),
                 offset=(x - cx, y - cy),
                 inside=bool(inside[k]),
+                uncertain=half - max(abs(x - cx), abs(y - cy)) < budget,
+                error_budget_m=budget,
             )
         return out
+
+    def budgets_at_cells(self) -> np.ndarray:
+        """(rows, cols): the error budget (metres) of a car marker on the floor at each cell's
+        centre, the worse of two headings; what `udan-calibrate check` shows a lab."""
+        g = self.geometry
+        rows, cols = np.mgrid[0 : g.rows, 0 : g.cols]
+        centres = np.stack([(cols.ravel() + 0.5) * g.cell_m, (rows.ravel() + 0.5) * g.cell_m], 1)
+        worst = np.zeros(len(centres))
+        for heading in (0.0, math.pi / 4):
+            arena = centres[:, None] + square((0.0, 0.0), g.car_marker_m, heading)
+            image = self.fit.to_image(arena)
+            sides = _side_lengths(image).mean(1)
+            worst = np.maximum(worst, self._error_budgets(arena, sides))
+        return worst.reshape(g.rows, g.cols)
+
+    def _error_budgets(self, arena: np.ndarray, image_sides: np.ndarray) -> np.ndarray:
+        """Per marker (arena corners (n, 4, 2), mean image sides (n,)): how far its true position
+        may be from the measured one (metres); see `CarSighting.error_budget_m`."""
+        edges = _side_lengths(arena)
+        side = edges.mean(1)
+        diagonals = np.linalg.norm(arena[:, 2:] - arena[:, :2], axis=2)
+        unsquare = np.maximum(
+            np.abs(edges - side[:, None]).max(1),
+            np.abs(diagonals - side[:, None] * math.sqrt(2)).max(1) / math.sqrt(2),
+        )
+        pixel = side / np.maximum(image_sides, 1.0)
+        return (
+            BUDGET_FLOOR_M
+            + BUDGET_PIXELS * pixel
+            + MISFIT_GAIN * self.fit.misfit_m
+            + UNSQUARE_GAIN * unsquare
+        )
 
     def process(self, frame: Frame) -> Scene:
         """The scene in one frame: track the known cars, sweep one tile, convert to the arena."""
@@ -347,11 +565,12 @@ class Vision:
             self._setup(img.shape)
         cars = self.tracker.track(img, frame.index)
         swept = self._sweep(img, cars)
+        self._sweep_small(img, cars)
         checked = self._check_corner(img)
         self.tracker.update(cars, frame.index)
         changed = False
         for marker, quad in [*swept.items(), *checked.items()]:
-            changed |= self._observe_corner(marker, quad)
+            changed |= self._observe_corner(marker, self.detector.refine(img, quad))
         if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
             self.fit.fit()
         sightings = self._sightings(frame.index)

@@ -13,7 +13,10 @@ The surround target moves, so it is drawn per frame like a car, not into the sta
 rebuild costs several frames' time).
 
 The lens uses OpenCV's distortion model (k1, k2), so an OpenCV calibration file holding
-`Renderer.camera_matrix` and `dist_coeffs` describes this camera to the edge's vision.
+`Renderer.camera_matrix` and `dist_coeffs` describes this camera to the edge's vision. The camera
+may be tilted (up to 60 degrees and more), turned and rolled; car markers may be printed at
+another size than the vision is told (a different `ArenaGeometry`) and sit above the floor on
+top of their car (`marker_heights`), as in a real lab.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ class CameraModel:
     the arena centre, so row 0 looks bigger."""
     yaw_deg: float = 0.0
     """Rotation of the camera about the vertical."""
+    roll_deg: float = 0.0
+    """Rotation of the camera about its own optical axis (a camera mounted askew)."""
     fill: float = 0.94
     """Fraction of the frame (in its tighter direction) the arena plus corner markers fill."""
     k1: float = 0.0
@@ -74,8 +79,7 @@ class CameraModel:
         """World -> camera rotation. World: x along columns, y along rows, z into the floor."""
         t, y = math.radians(self.tilt_deg), math.radians(self.yaw_deg)
         rx = np.array([[1, 0, 0], [0, math.cos(t), -math.sin(t)], [0, math.sin(t), math.cos(t)]])
-        rz = np.array([[math.cos(y), -math.sin(y), 0], [math.sin(y), math.cos(y), 0], [0, 0, 1]])
-        return rx @ rz
+        return _about_z(math.radians(self.roll_deg)) @ rx @ _about_z(y)
 
     def position(self, geometry: ArenaGeometry) -> np.ndarray:
         """Where the camera is (world metres): `distance_m` back along its optical axis from
@@ -114,6 +118,11 @@ class CameraModel:
         return k, self.distortion()
 
 
+def _about_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
 def marker_texture(
     dictionary: cv2.aruco.Dictionary, marker: int, margin_modules: int = 1
 ) -> tuple[np.ndarray, int]:
@@ -141,11 +150,21 @@ class _Sprite:
 
 
 class Renderer:
-    """Renders the arena seen by `camera`: static scene once per layout, cars per frame."""
+    """Renders the arena seen by `camera`: static scene once per layout, cars per frame.
 
-    def __init__(self, geometry: ArenaGeometry = _ARENA, camera: CameraModel = _CAMERA) -> None:
+    `geometry` is the arena as printed, which may differ from what the vision is told (a lab
+    printing its car markers at another size); `marker_heights` lifts car markers (by marker id,
+    metres above the floor: a marker on top of a real car) together with their car's body."""
+
+    def __init__(
+        self,
+        geometry: ArenaGeometry = _ARENA,
+        camera: CameraModel = _CAMERA,
+        marker_heights: Mapping[int, float] | None = None,
+    ) -> None:
         self.geometry = geometry
         self.camera = camera
+        self.marker_heights = dict(marker_heights or {})
         self.camera_matrix, self.dist_coeffs = camera.intrinsics(geometry)
         r = camera.rotation()
         self._cam_centre = camera.position(geometry)
@@ -167,11 +186,12 @@ class Renderer:
         self._noise = self._draw_noise()
 
     # -- geometry -------------------------------------------------------------------------
-    def project(self, xy: np.ndarray) -> np.ndarray:
-        """Image pixel coordinates (..., 2) of arena points ``xy`` (..., 2) on the floor."""
+    def project(self, xy: np.ndarray, height: float = 0.0) -> np.ndarray:
+        """Image pixel coordinates (..., 2) of arena points ``xy`` (..., 2) ``height`` metres
+        above the floor."""
         xy = np.asarray(xy, dtype=np.float64)
         flat = xy.reshape(-1, 2)
-        world = np.column_stack([flat, np.zeros(len(flat))])
+        world = np.column_stack([flat, np.full(len(flat), -height)])
         img, _ = cv2.projectPoints(
             world, self.rvec, self.tvec, self.camera_matrix, self.dist_coeffs
         )
@@ -242,19 +262,30 @@ class Renderer:
         return sprite
 
     def _paste(
-        self, canvas: np.ndarray, sprite: _Sprite, x: float, y: float, heading: float
+        self,
+        canvas: np.ndarray,
+        sprite: _Sprite,
+        x: float,
+        y: float,
+        heading: float,
+        height: float = 0.0,
     ) -> tuple[int, int, int, int] | None:
-        """Resample `sprite` centred on arena (x, y) facing `heading` into `canvas`; returns the
-        touched window (x0, y0, x1, y1) or None when it is off the image."""
-        corners = self.project(square((x, y), sprite.side_m, heading))
+        """Resample `sprite` centred on arena (x, y) facing `heading`, `height` metres above the
+        floor, into `canvas`; returns the touched window (x0, y0, x1, y1) or None when it is
+        off the image."""
+        corners = self.project(square((x, y), sprite.side_m, heading), height)
         x0, y0 = np.floor(corners.min(0)).astype(int) - 1
         x1, y1 = np.ceil(corners.max(0)).astype(int) + 2
         x0, y0 = max(x0, 0), max(y0, 0)
         x1, y1 = min(x1, self.camera.width), min(y1, self.camera.height)
         if x1 <= x0 or y1 <= y0:
             return None
-        dx = self._ax[y0:y1, x0:x1] - np.float32(x)
-        dy = self._ay[y0:y1, x0:x1] - np.float32(y)
+        # a pixel's ray meets the plane at `height` closer to the camera's foot than the floor,
+        # by the factor (camera height - height) / camera height
+        lift = np.float32(1 + height / self._cam_centre[2])
+        foot_x, foot_y = np.float32(self._cam_centre[0]), np.float32(self._cam_centre[1])
+        dx = foot_x + (self._ax[y0:y1, x0:x1] - foot_x) * lift - np.float32(x)
+        dy = foot_y + (self._ay[y0:y1, x0:x1] - foot_y) * lift - np.float32(y)
         c, s = np.float32(math.cos(heading) / sprite.m), np.float32(math.sin(heading) / sprite.m)
         half = np.float32(sprite.texture.shape[0] / 2 - 0.5)
         u = c * dx + s * dy + half
@@ -299,14 +330,17 @@ class Renderer:
         if layout != self._layout:
             self._build_background(dict(layout))
             self._layout = layout
-        sprites = [(self._sprite("car", m), x, y, h) for m, x, y, h in cars]
+        lifted = self.marker_heights
+        sprites = [(self._sprite("car", m), x, y, h, lifted.get(m, 0.0)) for m, x, y, h in cars]
         target = self._sprite("cell", CELL_KIND_IDS["target"])
-        sprites += [(target, *self.geometry.cell_centre(*c), 0.0) for c in cells.get("target", ())]
+        sprites += [
+            (target, *self.geometry.cell_centre(*c), 0.0, 0.0) for c in cells.get("target", ())
+        ]
         frame = self._background.copy()
         pad = math.ceil(3 * self.camera.blur_sigma)
         windows = []
-        for sprite, x, y, heading in sprites:
-            win = self._paste(self._sharp, sprite, x, y, heading)
+        for sprite, x, y, heading, height in sorted(sprites, key=lambda s: s[4]):
+            win = self._paste(self._sharp, sprite, x, y, heading, height)
             if win is not None:
                 windows.append(win)
         for x0, y0, x1, y1 in windows:
@@ -322,3 +356,43 @@ class Renderer:
             cv2.add(frame, self._noise[0, off : off + h], dst=frame)
             cv2.subtract(frame, self._noise[1, off : off + h], dst=frame)
         return frame
+
+
+def render_plane(
+    texture: np.ndarray,
+    metres_per_texel: float,
+    pose: tuple[np.ndarray, np.ndarray],
+    camera_matrix: np.ndarray,
+    dist_coeffs: np.ndarray,
+    size: tuple[int, int],
+    background: float = OUTSIDE,
+) -> np.ndarray:
+    """A flat printed sheet (a calibration board: `texture`, texel (0, 0) at its origin, x and
+    y along its columns and rows) seen by a camera with lens distortion, `pose` = (rvec, tvec)
+    sheet -> camera, as a grayscale (uint8) image of `size` (width, height): the views a lab
+    takes to calibrate its camera."""
+    w, h = size
+    gu = np.arange(0, w + MAP_STEP, MAP_STEP, dtype=np.float64)
+    gv = np.arange(0, h + MAP_STEP, MAP_STEP, dtype=np.float64)
+    uu, vv = np.meshgrid(gu, gv)
+    pix = np.stack([uu, vv], -1).reshape(-1, 1, 2)
+    norm = cv2.undistortPoints(pix, camera_matrix, dist_coeffs, criteria=_UNDISTORT).reshape(-1, 2)
+    r = cv2.Rodrigues(np.asarray(pose[0], dtype=np.float64))[0]
+    t = np.asarray(pose[1], dtype=np.float64).reshape(3)
+    rays = np.column_stack([norm, np.ones(len(norm))]) @ r  # sheet coordinates, per row
+    origin = -r.T @ t  # the camera in sheet coordinates
+    along = -origin[2] / rays[:, 2]
+    hits = origin[:2] + rays[:, :2] * along[:, None]
+    hits[along <= 0] = -1e6  # behind the camera: off the sheet
+    coarse = (hits / metres_per_texel - 0.5).reshape(len(gv), len(gu), 2).astype(np.float32)
+    mx = np.tile(np.arange(w, dtype=np.float32) / MAP_STEP, (h, 1))
+    my = np.tile((np.arange(h, dtype=np.float32) / MAP_STEP)[:, None], (1, w))
+    fine = cv2.remap(coarse, mx, my, cv2.INTER_LINEAR)
+    return cv2.remap(
+        texture,
+        fine[..., 0],
+        fine[..., 1],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=background,
+    )

@@ -58,14 +58,23 @@ def core(policy: OnnxPolicy, clock: Clock) -> ControlCore:
 
 
 def scene(
-    t_ns: int, cells: Mapping[int, tuple[int, int]], static: Mapping = STATIC, index: int = 0
+    t_ns: int,
+    cells: Mapping[int, tuple[int, int]],
+    static: Mapping = STATIC,
+    index: int = 0,
+    uncertain: Iterable[int] = (),
+    calibrated: bool = True,
 ) -> Scene:
-    """A frame at ``t_ns`` showing marker -> cell."""
+    """A frame at ``t_ns`` showing marker -> cell; markers in ``uncertain`` too near a border
+    to name their cell."""
+    doubted = set(uncertain)
     cars = {
-        m: CarSighting(m, cell, (0.0, 0.0), 0.0, (0.0, 0.0), min(cell) >= 0 and max(cell) < 9)
+        m: CarSighting(
+            m, cell, (0.0, 0.0), 0.0, (0.0, 0.0), min(cell) >= 0 and max(cell) < 9, m in doubted
+        )
         for m, cell in cells.items()
     }
-    return Scene(t_ns, index, True, cars, dict(static), 0)
+    return Scene(t_ns, index, calibrated, cars, dict(static), 0)
 
 
 def all_acked(
@@ -253,3 +262,50 @@ def test_the_last_step_is_credited_only_from_a_frame_that_shows_every_car(
     rewards = core.credit_last_step(scene(clock.ns, {11: (1, 1), 12: (8, 5)}))
     assert rewards.tolist() == [1.0, 0.0]  # car 1 ended in front of a water source
     assert core.policy_step.returns == {1: 1.0, 2: 0.0}
+
+
+def test_an_uncertain_car_is_held_on_its_last_cell_and_counted(
+    core: ControlCore, clock: Clock
+) -> None:
+    """A car seen too near a cell border to name its cell keeps the cell it was last placed in
+    and is told to wait, the others are decided as usual; the step record counts it."""
+    first_step(core, clock)
+    clock.ns = 300 * MS
+    frame = scene(clock.ns, {11: (7, 1), 12: (8, 6)}, uncertain=[12])
+    core.see(frame, ready={1, 2}, now=clock.ns)
+    state = core.due(frame, done, clock.ns)
+    assert state.cells == {1: (7, 1), 2: (8, 5)}  # not the guessed (8, 6)
+    assert state.uncertain == {2} and state.moving[2] == WAIT
+    record = step(core, clock, state)
+    assert record["commands"]["2"] == WAIT and record["uncertain"] == 1
+    assert record["uncertain_cars"] == [2]
+    # placed with confidence again: decided from its new cell
+    clock.ns = 600 * MS
+    frame = scene(clock.ns, {11: (7, 1), 12: (8, 6)})
+    core.see(frame, ready={1, 2}, now=clock.ns)
+    state = core.due(frame, done, clock.ns)
+    assert state.cells[2] == (8, 6) and not state.uncertain and 2 not in state.moving
+
+
+def test_a_car_never_placed_with_confidence_does_not_join(core: ControlCore, clock: Clock) -> None:
+    frame = scene(0, TWO, uncertain=[12])
+    change = core.see(frame, ready={1, 2}, now=0)
+    assert change.joined == [1] and 2 not in core.fleet.cell
+    frame = scene(50 * MS, TWO)
+    assert core.see(frame, ready={1, 2}, now=50 * MS).joined == [2]
+
+
+def test_an_uncalibrated_frame_holds_every_car_and_says_why(
+    core: ControlCore, clock: Clock
+) -> None:
+    """The calibration markers hidden: the frame places no car, so after the grace the step
+    holds every car on its last cell instead of commanding it, and the record says so."""
+    first_step(core, clock)
+    for at_ms in (300, 410):
+        clock.ns = at_ms * MS
+        frame = scene(clock.ns, {}, calibrated=False)
+        core.see(frame, ready={1, 2}, now=clock.ns)
+        state = core.due(frame, done, clock.ns)
+    assert state is not None and not state.calibrated and state.uncertain == {1, 2}
+    record = step(core, clock, state)
+    assert record["commands"] == {"1": WAIT, "2": WAIT} and record["uncalibrated"] == 1

@@ -34,6 +34,7 @@ key_file = "keys/car2.key"
 id = 3
 marker = 13
 key = "{KEY2.upper()}"
+marker_height_m = 0.12
 """
 
 
@@ -60,7 +61,7 @@ def test_good_file_parses_and_the_mock_reads_it_too(keys_dir: Path) -> None:
     assert cars == [
         CarEntry(1, 11, bytes(range(32)), "127.0.0.1", 9101, "/dev/ttyUSB0"),
         CarEntry(2, 12, bytes(range(50, 82)), "10.0.0.22", 9100),
-        CarEntry(3, 13, bytes(range(100, 132))),
+        CarEntry(3, 13, bytes(range(100, 132)), marker_height_m=0.12),
     ]
     assert [c.address for c in cars] == [("127.0.0.1", 9101), ("10.0.0.22", 9100), None]
     assert "key=" not in repr(cars[0])  # a key never shows in a log line
@@ -106,6 +107,9 @@ BAD = {
     "bad address": (_car(address='"nohost"'), "car 1: address must be HOST:PORT"),
     "port range": (_car(port=70000), "car 1: port must be an integer in 0-65535"),
     "serial empty": (_car(serial='""'), "car 1: serial must be a device path"),
+    "height negative": (_car(marker_height_m=-0.1), "car 1: marker_height_m must be metres"),
+    "height a camera's": (_car(marker_height_m=2.5), "car 1: marker_height_m must be metres"),
+    "height text": (_car(marker_height_m='"10cm"'), "car 1: marker_height_m must be metres"),
     "duplicate id": (_car() + _car(marker=2), "duplicate car id 1"),
     "duplicate marker": (_car() + _car(id=2), "duplicate marker 1"),
     "duplicate port": (_car(port=9000) + _car(id=2, marker=2, port=9000), "duplicate port 9000"),

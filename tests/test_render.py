@@ -1,5 +1,6 @@
 """The virtual camera's renderer: its projection is the ground truth the vision tests rely on."""
 
+import dataclasses
 import math
 
 import cv2
@@ -95,3 +96,51 @@ def test_noise_and_gain():
     plain = Renderer(GEOMETRY, CameraModel()).render([], {})[centre].mean()
     assert dark[centre].mean() == pytest.approx(plain * 0.5, abs=1)
     assert bright[centre].mean() == pytest.approx(plain * 1.2, abs=1)
+
+
+@pytest.mark.parametrize(
+    "camera",
+    [
+        CameraModel(tilt_deg=45, roll_deg=8, k1=0.15),
+        CameraModel(tilt_deg=60, yaw_deg=-20, k1=-0.2, k2=0.03),
+        CameraModel(roll_deg=-25, k1=0.08),
+    ],
+    ids=["tilt45-roll", "tilt60-barrel", "roll-only"],
+)
+def test_raised_and_rescaled_markers_land_where_project_says(camera):
+    """Car markers printed at another size and lifted to their car's top are drawn where the
+    projection of their own plane puts them, through tilt, roll and distortion (within 0.75
+    pixel: the detector refines markers foreshortened to half their width less exactly)."""
+    printed = dataclasses.replace(GEOMETRY, car_marker_m=0.18)
+    heights = {5: 0.0, 6: 0.08, 7: 0.15}
+    renderer = Renderer(printed, camera, marker_heights=heights)
+    cars = [(5, 0.8, 1.9, 0.4), (6, 2.0, 0.9, -1.2), (7, 1.3, 1.4, 2.5)]
+    found = detect(renderer.render(cars, {}))
+    for marker, x, y, heading in cars:
+        truth = renderer.project(square((x, y), printed.car_marker_m, heading), heights[marker])
+        assert np.abs(found[marker][0] - truth).max() < 0.75, marker
+
+
+def test_a_raised_marker_moves_away_from_the_camera_foot():
+    """Lifting a marker off the floor shifts its image outward from the point below the camera,
+    by the ratio of the heights (the parallax the vision must undo)."""
+    camera = CameraModel(tilt_deg=30)
+    renderer = Renderer(GEOMETRY, camera)
+    foot = camera.position(GEOMETRY)
+    xy = np.array([0.5, 2.4])
+    lifted = renderer.project(xy, 0.15)
+    height = -foot[2]
+    seen_on_floor = foot[:2] + (xy - foot[:2]) * height / (height - 0.15)
+    assert np.abs(lifted - renderer.project(seen_on_floor)).max() < 1e-6
+    assert math.dist(lifted, renderer.project(xy)) > 10
+
+
+def test_roll_turns_the_image_about_its_centre():
+    straight = Renderer(GEOMETRY, CameraModel(tilt_deg=20))
+    rolled = Renderer(GEOMETRY, CameraModel(tilt_deg=20, roll_deg=30))
+    centre = (np.array([1920, 1200]) - 1) / 2
+    xy = GEOMETRY.corner_centres()
+    a = straight.project(xy) - centre
+    b = rolled.project(xy) - centre
+    turn = np.degrees(np.arctan2(b[:, 1], b[:, 0]) - np.arctan2(a[:, 1], a[:, 0]))
+    assert np.allclose((turn + 180) % 360 - 180, 30, atol=1e-6)

@@ -22,7 +22,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-_EDGE_FIELDS = {"id", "marker", "port", "address", "key", "key_file", "serial"}
+_EDGE_FIELDS = {"id", "marker", "port", "address", "key", "key_file", "serial", "marker_height_m"}
+#: Highest a car's marker may sit above the floor (metres): a car's top, not a camera's height.
+MAX_MARKER_HEIGHT_M = 1.0
 _MOCK_ONLY_FIELDS = {"start", "faults"}
 _HEX = re.compile(r"[0-9a-fA-F]*")
 #: A car key's length in bytes (its HMAC-SHA256 key, docs/protocol.md section 12).
@@ -46,6 +48,9 @@ class CarEntry:
     serial: str | None = None  # device of the car's wired serial link (serial transport)
     mock: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
     """The mock-only fields as written (``start``, ``faults``): the mock checks them."""
+    marker_height_m: float = 0.0
+    """How far the car's marker sits above the floor (on top of the car): the vision maps it
+    through that plane, or the parallax puts the car centimetres off near the image's edges."""
 
     @property
     def address(self) -> tuple[str, int] | None:
@@ -126,8 +131,17 @@ def _entry(car: Any, index: int, base_dir: Path) -> CarEntry:
     device = car.get("serial")
     if device is not None and (not isinstance(device, str) or not device):
         raise FleetFileError(f"{where}: serial must be a device path, got {device!r}")
+    height = car.get("marker_height_m", 0.0)
+    if (
+        isinstance(height, bool)
+        or not isinstance(height, int | float)
+        or not 0 <= height <= MAX_MARKER_HEIGHT_M
+    ):
+        raise FleetFileError(
+            f"{where}: marker_height_m must be metres in 0-{MAX_MARKER_HEIGHT_M}, got {height!r}"
+        )
     mock = {name: car[name] for name in _MOCK_ONLY_FIELDS if name in car}
-    return CarEntry(car_id, marker, key, host, port, device, mock)
+    return CarEntry(car_id, marker, key, host, port, device, mock, float(height))
 
 
 def _first_duplicate(values: list[Any]) -> Any:
