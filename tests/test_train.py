@@ -127,7 +127,7 @@ def one_line_exit_2(proc, fragment):
     [
         (["--algo", "sarsa"], "unknown algo"),
         (["--env", "arena/mars"], "unknown"),
-        (["--env", "magent/tiger"], "arena tasks"),
+        (["--env", "magent/queue", "--agents", "30"], "cannot line up"),
         (["--agents", "5-1"], "inverted"),
         (["--algo", "qmix", "--agents", "1-5"], "fixed number"),
         (["--out", "{blocked}/run"], "cannot create folder"),
