@@ -110,9 +110,9 @@ def test_every_config_field_is_documented_and_a_flag():
     assert all(f"--{name.replace('_', '-')}" in out for name in docs)
 
 
-def run_cli(*args, tool="udan-train"):
+def run_cli(*args, tool="udan-train", timeout=120):
     return subprocess.run(
-        [BIN / tool, *map(str, args)], capture_output=True, text=True, timeout=120
+        [BIN / tool, *map(str, args)], capture_output=True, text=True, timeout=timeout
     )
 
 
