@@ -59,7 +59,7 @@ class TrainConfig:
     obstacles: str = "0-14"
     """Obstacles per episode, drawn uniformly from this range."""
     steps: float = 2e6
-    """Environment steps to train for (one arena stepping once is one step)."""
+    """Environment steps to train for (one env of the batch stepping once is one step)."""
     max_steps: int = 0
     """Episode length in steps (0: the task's own: arena 50, pursuit and queue 300, tiger 200)."""
     map_size: int = 0
