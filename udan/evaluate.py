@@ -448,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         arena = env_name.startswith("arena/")
         agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
         obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
+        make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
         if args.csv is not None and len(sources) > 1:
             raise EnvConfigError("--csv takes one source; use --out for several")
         probed = _probed_model(args, sources)
