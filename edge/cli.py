@@ -149,13 +149,13 @@ def load_policy(path: Path, geometry: ArenaGeometry) -> tuple[Any, DecisionStep]
     except Exception as err:  # onnxruntime raises its own types for a corrupt file
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise UsageError(f"model {path}: cannot be loaded by onnxruntime: {first}") from None
+    task = task_of(policy.graph.metadata["env"])  # first: a MAgent policy sees no cars at all
     spec = obs_spec(policy.graph.metadata)
     if (spec.height, spec.width) != (geometry.rows, geometry.cols):
         raise UsageError(
             f"model {path} was trained on a {spec.height}x{spec.width} arena; "
             f"this arena is {geometry.rows}x{geometry.cols}"
         )
-    task = task_of(policy.graph.metadata["env"])
     return policy, DecisionStep(policy, task, spec)
 
 

@@ -14,9 +14,8 @@ from dataclasses import asdict
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from udan.envs import observation_layout
+from udan.envs import code_spec
 from udan.envs.observe import ObsSpec
-from udan.envs.rules import ACTIONS
 
 FORMAT = "udan-policy"
 FORMAT_VERSION = 4
@@ -72,7 +71,7 @@ def build_metadata(
         "obs_spec_version": str(obs["version"]),
         "view_radius": str(obs["view"]),
         "obs_dim": str(spec["obs_dim"]),
-        "actions": json.dumps(list(ACTIONS)),
+        "actions": json.dumps(list(code_spec(obs).actions)),
         "hidden": str(spec["hidden"]),
         "communicates": "1" if spec["algo"] == "udan" and spec.get("messages", True) else "0",
         "group_size": str(spec["group_size"]),
@@ -81,6 +80,8 @@ def build_metadata(
         "attention_neighbours": str(spec["attention_neighbours"]),
         "checkpoint_sha256": checkpoint_sha256,
         "project_version": project_version(),
+        # not in KEYS: policies exported before it lack it and still load
+        "agents": str(ckpt["config"]["agents"]),
     }
 
 
@@ -104,13 +105,15 @@ def check_metadata(meta: Mapping[str, str], expected: ObsSpec | None = None) -> 
             f"format {meta['format']} v{meta['format_version']} is not {FORMAT} v{FORMAT_VERSION}"
         )
     obs = json.loads(meta["obs_spec"])
-    version, channels, features = observation_layout(obs)
-    if obs.get("version") != version:
-        problems.append(f"observation spec v{obs.get('version')} is not v{version}")
-    if tuple(obs.get("channels", ())) != channels or tuple(obs.get("features", ())) != features:
+    code = code_spec(obs)
+    if obs.get("version") != code.version:
+        problems.append(f"observation spec v{obs.get('version')} is not v{code.version}")
+    if tuple(obs.get("channels", ())) != code.channels or tuple(obs.get("features", ())) != (
+        code.features
+    ):
         problems.append("observation channels/features differ from this code's")
-    if tuple(json.loads(meta["actions"])) != ACTIONS:
-        problems.append(f"actions {meta['actions']} are not {list(ACTIONS)}")
+    if tuple(json.loads(meta["actions"])) != code.actions:
+        problems.append(f"actions {meta['actions']} are not {list(code.actions)}")
     if expected is not None:
         want = {k: v for k, v in asdict(expected).items() if k != "version"}
         got = {k: obs.get(k) for k in want}

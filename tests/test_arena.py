@@ -173,11 +173,13 @@ def test_bad_config_is_refused_with_a_clear_message(kwargs, message):
         ArenaConfig(**{"task": "find_water", **kwargs})
 
 
-def test_unknown_env_names_the_known_ones():
+def test_unknown_env_names_the_known_ones(monkeypatch):
     with pytest.raises(envs.UnknownEnvError, match=r"known: .*arena/find_water"):
         envs.make("arena/nope")
+    assert envs.make_vec("magent/tiger", batch=2, agents=3).batch == 2
+    monkeypatch.setitem(envs._PARALLEL, "magent/extra", "udan.envs.magent:make")
     with pytest.raises(envs.UnknownEnvError, match="no vectorised form"):
-        envs.make_vec("magent/tiger", batch=2)
+        envs.make_vec("magent/extra", batch=2)
 
 
 def test_bad_actions_are_refused():

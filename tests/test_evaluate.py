@@ -72,7 +72,7 @@ def test_surround_prints_the_target_table_too(capsys):
         (["--agents", "1-12"], "water sources"),
         (["--obstacles", "0-40"], "obstacle zone"),
         (["--env", "arena/nope"], "unknown"),
-        (["--env", "magent/tiger"], "arena tasks only"),
+        (["--env", "magent/tiger"], "plays arena tasks, not magent/tiger"),
         (["/nonexistent/checkpoint.pt"], "does not exist"),
         (["--episodes", "0"], "--episodes"),
         (["--csv", "/proc/version/x.csv"], "cannot create folder"),

@@ -111,9 +111,9 @@ def test_every_config_field_is_documented_and_a_flag():
     assert all(f"--{name.replace('_', '-')}" in out for name in docs)
 
 
-def run_cli(*args, tool="udan-train"):
+def run_cli(*args, tool="udan-train", timeout=120):
     return subprocess.run(
-        [BIN / tool, *map(str, args)], capture_output=True, text=True, timeout=120
+        [BIN / tool, *map(str, args)], capture_output=True, text=True, timeout=timeout
     )
 
 
@@ -128,7 +128,7 @@ def one_line_exit_2(proc, fragment):
     [
         (["--algo", "sarsa"], "unknown algo"),
         (["--env", "arena/mars"], "unknown"),
-        (["--env", "magent/tiger"], "arena tasks"),
+        (["--env", "magent/queue", "--agents", "30"], "cannot line up"),
         (["--agents", "5-1"], "inverted"),
         (["--algo", "qmix", "--agents", "1-5"], "fixed number"),
         (["--out", "{blocked}/run"], "cannot create folder"),

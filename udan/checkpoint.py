@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from udan.envs import observation_layout
+from udan.envs import code_spec
 
 FORMAT = "udan-checkpoint"
 FORMAT_VERSION = 1
@@ -69,7 +69,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(
             f"{path}: checkpoint format {ckpt.get('format_version')} is not {FORMAT_VERSION}"
         )
-    version = observation_layout(ckpt["obs_spec"])[0]
+    version = code_spec(ckpt["obs_spec"]).version
     if ckpt["obs_spec"].get("version") != version:
         raise CheckpointError(
             f"{path}: observation spec v{ckpt['obs_spec'].get('version')} does not match this "

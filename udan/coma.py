@@ -174,9 +174,8 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optim.step()
 
-        if run.record(
-            epsilon, {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
-        ):
+        losses = {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
+        if run.record(epsilon, losses, episodes):
             extra = {
                 "critic_weights": critic.state_dict(),
                 "critic_target_weights": target_critic.state_dict(),

@@ -1,7 +1,8 @@
 """``udan-eval``: paper-style score tables (rows obstacles, columns agents) for policies.
 
 Every cell runs its episodes as one batch with a seed derived from (seed, agents, obstacles),
-so two policies evaluated with the same ``--seed`` meet exactly the same layouts.
+so two policies evaluated with the same ``--seed`` meet exactly the same layouts. MAgent tasks
+have no obstacle rows: one row per number of agents, with its 95 % CI.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from udan.ablations import ABLATIONS, check_ablation
-from udan.envs import EnvConfigError, make_vec
+from udan.envs import EnvConfigError, env_names, make_vec
 from udan.envs.errors import parse_range
 from udan.leaders import check_leaders, format_leaders, leader_table
 from udan.paths import FolderError, ensure_folder
@@ -40,9 +41,16 @@ class CellResult:
 
 
 def run_cell(
-    env_name: str, policy: Policy, agents: int, obstacles: int, episodes: int, seed: int
+    env_name: str,
+    policy: Policy,
+    agents: int,
+    obstacles: int,
+    episodes: int,
+    seed: int,
+    options: dict | None = None,
 ) -> CellResult:
-    """Play ``episodes`` episodes with exactly ``agents`` agents and ``obstacles`` obstacles."""
+    """Play ``episodes`` episodes with exactly ``agents`` agents and ``obstacles`` obstacles
+    (``options``: further task options, those a checkpoint was trained with)."""
     cell_seed = np.random.SeedSequence([seed, agents, obstacles])
     env = make_vec(
         env_name,
@@ -50,6 +58,7 @@ def run_cell(
         seed=cell_seed,
         agents=(agents, agents),
         obstacles=(obstacles, obstacles),
+        **(options or {}),
     )
     env.reset()
     policy.reset(env)
@@ -74,10 +83,11 @@ def evaluate(
     obstacles: tuple[int, int],
     episodes: int,
     seed: int,
+    options: dict | None = None,
 ) -> list[CellResult]:
     """Every cell of the agents x obstacles grid."""
     return [
-        run_cell(env_name, policy, n, m, episodes, seed)
+        run_cell(env_name, policy, n, m, episodes, seed, options)
         for m in range(obstacles[0], obstacles[1] + 1)
         for n in range(agents[0], agents[1] + 1)
     ]
@@ -102,6 +112,17 @@ def format_table(results: list[CellResult], field: str, title: str) -> str:
         + " | ".join(f"{np.mean([value[m, n] for m in obstacles]):.2f}" for n in agents)
         + f" | {np.mean(list(value.values())):.2f} |"
     )
+    return "\n".join(lines)
+
+
+def format_agents_table(results: list[CellResult], title: str) -> str:
+    """Markdown table for tasks without obstacle rows: one row per agent count, the average
+    agent score with the 95 % CI of its mean over episodes."""
+    lines = [f"**{title}**", "", "| agents | score [95 % CI] | episodes |", "|---|---|---|"]
+    for n in sorted({r.agents for r in results}):
+        scores = pooled_scores(results, n)
+        mean, half = mean_ci(scores)
+        lines.append(f"| {n} | {mean:.2f} [{mean - half:.2f}, {mean + half:.2f}] | {scores.size} |")
     return "\n".join(lines)
 
 
@@ -192,12 +213,21 @@ def format_bounds(results: list[CellResult], config, title: str) -> str:
     return "\n".join(lines)
 
 
-def load_sources(args: argparse.Namespace) -> list[tuple[str, str, Policy]]:
-    """(label, env name, policy) for every checkpoint given and the ``--policy`` if any."""
-    sources = []
+def load_sources(
+    args: argparse.Namespace,
+) -> tuple[list[tuple[str, str, Policy]], dict, str | None]:
+    """(label, env name, policy) for every checkpoint given and the ``--policy`` if any; the
+    task options (episode length, map size) and the agent range the checkpoints were trained
+    with (the first one's; None without a checkpoint)."""
+    from udan.train import env_options
+
+    sources, options, trained = [], [], []
     for path in args.checkpoints:
+        import torch
+
         from udan.checkpoint import load_model
 
+        torch.set_num_threads(1)  # small networks: on a busy 2-core machine more threads are slower
         model, ckpt = load_model(path)
         env_name = args.env or ckpt["env"]
         if env_name != ckpt["env"]:
@@ -205,14 +235,20 @@ def load_sources(args: argparse.Namespace) -> list[tuple[str, str, Policy]]:
         sources.append(
             (f"{ckpt['algo']} ({Path(path).parent.name})", env_name, CheckpointPolicy(model))
         )
+        options.append(env_options(ckpt["config"]))
+        trained.append(str(ckpt["config"]["agents"]))
     if args.policy:
         env_name = args.env or (sources[0][1] if sources else "arena/find_water")
+        if not env_name.startswith("arena/"):
+            raise EnvConfigError(f"--policy {args.policy} plays arena tasks, not {env_name}")
         sources.append((args.policy, env_name, POLICIES[args.policy](seed=args.seed)))
     if not sources:
         raise EnvConfigError("nothing to evaluate: give checkpoints and/or --policy")
     if len({env for _, env, _ in sources}) > 1:
         raise EnvConfigError("all checkpoints must come from one env to share a table")
-    return sources
+    if any(o != options[0] for o in options):
+        raise EnvConfigError("all checkpoints must share episode length and map size")
+    return sources, options[0] if options else {}, trained[0] if trained else None
 
 
 def plot_heatmap(results: list[CellResult], title: str, path: Path) -> None:
@@ -350,9 +386,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--policy", choices=sorted(POLICIES), help="also evaluate a reference policy"
     )
-    parser.add_argument("--env", help="arena task (default: the checkpoints' env, or find_water)")
-    parser.add_argument("--agents", default="1-5", help="agent counts, e.g. 1-5 (columns)")
-    parser.add_argument("--obstacles", default="0-9", help="obstacle counts, e.g. 0-9 (rows)")
+    parser.add_argument("--env", help="task (default: the checkpoints' env, or find_water)")
+    parser.add_argument(
+        "--agents",
+        help="agent counts, e.g. 1-5 (columns; default: arena 1-5, else the checkpoint's range)",
+    )
+    parser.add_argument(
+        "--obstacles", help="obstacle counts, e.g. 0-9 (rows; default: arena 0-9, MAgent 0)"
+    )
     parser.add_argument("--episodes", type=int, default=100, help="episodes per cell")
     parser.add_argument("--seed", type=int, default=0, help="seed of the layouts and the policy")
     parser.add_argument("--csv", type=Path, help="write the cells to this CSV (one source only)")
@@ -391,10 +432,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.episodes < 1:
             raise EnvConfigError(f"--episodes must be >= 1, got {args.episodes}")
-        if args.env is not None and not args.env.startswith("arena/"):
-            raise EnvConfigError(f"udan-eval evaluates arena tasks only, not {args.env!r}")
-        agents = parse_range(args.agents, "--agents")
-        obstacles = parse_range(args.obstacles, "--obstacles")
+        if args.env is not None and args.env not in env_names():
+            raise EnvConfigError(f"unknown env {args.env!r}; known: {', '.join(env_names())}")
         for folder, what in ((args.csv and args.csv.parent, "--csv"), (args.out, "--out")):
             if folder is not None:
                 ensure_folder(folder, what)
@@ -404,13 +443,18 @@ def main(argv: list[str] | None = None) -> int:
             if not args.checkpoints and not args.policy:
                 print(curves)
                 return 0
-        sources = load_sources(args)
+        sources, options, trained = load_sources(args)
+        env_name = sources[0][1]
+        arena = env_name.startswith("arena/")
+        agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
+        obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
+        make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
         if args.csv is not None and len(sources) > 1:
             raise EnvConfigError("--csv takes one source; use --out for several")
         probed = _probed_model(args, sources)
         started = time.perf_counter()
         tables = {
-            label: evaluate(env_name, policy, agents, obstacles, args.episodes, args.seed)
+            label: evaluate(env_name, policy, agents, obstacles, args.episodes, args.seed, options)
             for label, env_name, policy in sources
         }
         ablated = {
@@ -421,26 +465,30 @@ def main(argv: list[str] | None = None) -> int:
                 obstacles,
                 args.episodes,
                 args.seed,
+                options,
             )
             for mode in args.ablate
         }
         probes = probe(probed, agents, args.episodes, args.seed) if args.probe else []
         leaders = (
-            leader_table(probed, sources[0][1], agents, obstacles, args.episodes, args.seed)
+            leader_table(probed, env_name, agents, obstacles, args.episodes, args.seed, **options)
             if args.leaders
             else []
         )
     except (EnvConfigError, CheckpointError, FolderError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
-    env_name = sources[0][1]
     reports = [curves] if curves else []  # markdown tables written to --out/report.md
     for label, results in tables.items():
         title = (
             f"{env_name}, {label}: average agent score "
             f"({args.episodes} episodes per cell, seed {args.seed})"
         )
-        print(format_table(results, "agent_score", title))
+        print(
+            format_table(results, "agent_score", title)
+            if arena
+            else format_agents_table(results, title)
+        )
         if env_name == "arena/surround":
             print()
             print(format_table(results, "target_score", f"{env_name}, {label}: target score"))
@@ -450,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
             reports.append(format_bounds(results, config, f"{env_name}, {label}: bounds"))
         if args.out is not None:
             write_csv(results, args.out / f"{_slug(label)}.csv")
-            plot_heatmap(results, title, args.out / f"{_slug(label)}.png")
+            if arena:
+                plot_heatmap(results, title, args.out / f"{_slug(label)}.png")
     if ablated:
         label = sources[0][0]
         title = (

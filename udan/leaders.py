@@ -44,14 +44,19 @@ def check_leaders(spec) -> None:
         raise EnvConfigError(f"--leaders: this {spec.algo} checkpoint has no leaders")
 
 
-def collect(model, env_name: str, agents: int, obstacles, episodes: int, seed: int):
-    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes."""
+def collect(
+    model, env_name: str, agents: int, obstacles, episodes: int, seed: int, **options
+) -> tuple[np.ndarray, np.ndarray]:
+    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes
+    (``options``: the task options the model was trained with)."""
     from udan.envs.grouping import neighbour_tables
     from udan.learner import Actor, hypothetical_delta_q, neighbour_rows
 
     check_leaders(model.spec)
     spec = model.spec
-    env = make_vec(env_name, batch=episodes, seed=seed, agents=agents, obstacles=obstacles)
+    env = make_vec(
+        env_name, batch=episodes, seed=seed, agents=agents, obstacles=obstacles, **options
+    )
     obs = env.reset()
     actor = Actor(model, env.batch, env.slots)
     probs, deltas = [], []
@@ -94,12 +99,18 @@ def row(agents: int, prob: np.ndarray, delta: np.ndarray, threshold: float) -> L
 
 
 def leader_table(
-    model, env_name: str, agents: tuple[int, int], obstacles, episodes: int, seed: int
+    model,
+    env_name: str,
+    agents: tuple[int, int],
+    obstacles,
+    episodes: int,
+    seed: int,
+    **options,
 ) -> list[LeaderRow]:
     """One :class:`LeaderRow` per fleet size (obstacles drawn per episode from ``obstacles``)."""
     table = []
     for n in range(agents[0], agents[1] + 1):
-        prob, delta = collect(model, env_name, n, obstacles, episodes, seed)
+        prob, delta = collect(model, env_name, n, obstacles, episodes, seed, **options)
         if len(delta):
             table.append(row(n, prob, delta, model.spec.leader_threshold))
     return table

@@ -1,11 +1,12 @@
-"""``udan-train``: GCTDE training of UDAN (or a baseline) on an arena task, top to bottom.
+"""``udan-train``: GCTDE training of UDAN (or a baseline) on any registered task, top to bottom.
 
 Loop: roll out ``n_envs`` whole episodes at once with an epsilon-greedy :class:`Actor` (N drawn
 per episode; groups formed every ``group_interval`` steps and stored as the paper's matrix C),
 push them to an episode replay, then run ``updates_per_rollout`` updates on batches of whole
 episodes: double-Q TD on Q_tot with a target network (eqs. 19-21) plus, for UDAN, the leader
 classifier's BCE against min-max normalised ΔQ (eqs. 4-9). Checkpoints hold everything needed to
-resume exactly (the replay sits beside them in ``replay.npz``).
+resume exactly (the replay sits beside them in ``replay.npz``). ``--calibrate`` measures a short
+stretch of the planned run and prints its projected cost instead (:mod:`udan.budget`).
 """
 
 from __future__ import annotations
@@ -52,13 +53,17 @@ class TrainConfig:
     algo: str = "udan"
     """Learner: udan, qmix, vdn, iql or coma."""
     env: str = "arena/find_water"
-    """Arena task to train on."""
+    """Task to train on: an arena task or a MAgent scenario (magent/pursuit, tiger, queue)."""
     agents: str = "1-5"
     """Agents per episode, drawn uniformly from this range (baselines: a fixed count, e.g. 3)."""
     obstacles: str = "0-14"
     """Obstacles per episode, drawn uniformly from this range."""
     steps: float = 2e6
-    """Environment steps to train for (one arena stepping once is one step)."""
+    """Environment steps to train for (one env of the batch stepping once is one step)."""
+    max_steps: int = 0
+    """Episode length in steps (0: the task's own: arena 50, pursuit and queue 300, tiger 200)."""
+    map_size: int = 0
+    """MAgent tasks: the map's side in cells (0: the scenario's own, the paper's)."""
     seed: int = 0
     """Seed of environments, exploration and weights."""
     out: str = "runs/default"
@@ -69,6 +74,12 @@ class TrainConfig:
     """Whole episodes per update batch."""
     updates_per_rollout: int = 4
     """Gradient updates after each rollout."""
+    update_every: int = 1
+    """Rollouts between two rounds of updates (1: after every rollout; more: fewer updates per
+    episode, a cheaper-training deviation in docs/algorithm.md)."""
+    bptt_steps: int = 0
+    """Truncated backpropagation through time: gradients cross at most this many steps of the
+    agents' LSTM (0: whole episodes; a cheaper-training deviation in docs/algorithm.md)."""
     buffer_episodes: int = 4000
     """Replay capacity in whole episodes."""
     lr: float = 5e-4
@@ -152,7 +163,7 @@ class EpisodeReplay:
             "rewards": np.zeros((capacity, steps, slots), np.float32),
             "present": np.zeros((capacity, t1, slots), bool),
             "fresh": np.zeros((capacity, t1, slots), bool),
-            "pos": np.zeros((capacity, t1, slots, 2), np.int8),
+            "pos": np.zeros((capacity, t1, slots, 2), np.int16),
             "groups": np.full((capacity, t1, slots, k), -1, np.int8),
         }
 
@@ -210,14 +221,27 @@ def rollout(
 
 
 # ---------------------------------------------------------------------------------- update
-def unroll(model: MultiAgentQ, obs: torch.Tensor, fresh: torch.Tensor) -> torch.Tensor:
-    """Agent features over whole episodes: obs (E, T1, N, D) -> (T1, E*N, H)."""
+def unroll(
+    model: MultiAgentQ, obs: torch.Tensor, fresh: torch.Tensor, bptt_steps: int = 0
+) -> torch.Tensor:
+    """Agent features over whole episodes: obs (E, T1, N, D) -> (T1, E*N, H).
+
+    With ``bptt_steps`` the episodes run in chunks of that many steps and the LSTM state passes
+    from one chunk to the next detached: the same features, gradients truncated.
+    """
     e, t1, n, d = obs.shape
     seq = obs.permute(1, 0, 2, 3).reshape(t1, e * n, d)
-    feats, _ = model.encoder(
-        seq, model.encoder.initial_state(e * n), fresh.permute(1, 0, 2).reshape(t1, e * n)
-    )
-    return feats
+    new = fresh.permute(1, 0, 2).reshape(t1, e * n)
+    state = model.encoder.initial_state(e * n)
+    if bptt_steps == 0:
+        return model.encoder(seq, state, new)[0]
+    chunks = []
+    for start in range(0, t1, bptt_steps):
+        stop = start + bptt_steps
+        feats, state = model.encoder(seq[start:stop], state, new[start:stop])
+        state = (state[0].detach(), state[1].detach())
+        chunks.append(feats)
+    return torch.cat(chunks)
 
 
 def stored_rounds(groups: np.ndarray) -> list[torch.Tensor]:
@@ -256,7 +280,7 @@ def update(
     state = torch.from_numpy(batch["state"].astype(np.float32)).permute(1, 0, 2)
     rounds = stored_rounds(batch["groups"]) if model.spec.communicates else []
 
-    feats = unroll(model, obs, fresh)  # (T1, E*N, H)
+    feats = unroll(model, obs, fresh, cfg.bptt_steps)  # (T1, E*N, H)
     q = q_values(model, feats, rounds).view(t1, e, n, -1)
     with torch.no_grad():
         target_feats = unroll(target, obs, fresh)
@@ -264,9 +288,10 @@ def update(
         best_next = q[1:].argmax(-1, keepdim=True)  # double Q: online argmax, target value
         q_next = target_q[1:].gather(-1, best_next).squeeze(-1)  # (T, E, N)
     q_taken = q[:-1].gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-    # Arena episodes end only by the time limit, which agents cannot observe: bootstrap through
-    # it (Pardo et al., "Time Limits in RL"), so a state's value does not depend on the clock.
-    # An agent that left has no next value.
+    # The time limit, which agents cannot observe, is bootstrapped through (Pardo et al., "Time
+    # Limits in RL"), so a state's value does not depend on the clock. An agent that left (or
+    # every agent, at a MAgent game over) has no next value; steps of an episode that is over
+    # have no agent and are left out.
     alive, alive_next = present[:-1], present[1:]
     if model.spec.algo == "iql":
         y = rewards + cfg.gamma * q_next.masked_fill(~alive_next, 0.0)
@@ -288,8 +313,10 @@ def update(
                 state[1:].reshape(steps * e, -1),
                 alive_next.reshape(-1, n),
             )
-        y = rewards.sum(-1).reshape(-1) + cfg.gamma * next_tot
-        td_loss = F.mse_loss(q_tot, y)
+        continuing = alive_next.any(-1).reshape(-1)
+        y = rewards.sum(-1).reshape(-1) + cfg.gamma * torch.where(continuing, next_tot, 0.0)
+        acting = alive.any(-1).reshape(-1)
+        td_loss = F.mse_loss(q_tot[acting], y[acting])
     loss = td_loss
     losses = {"td_loss": td_loss.item()}
     if model.spec.communicates:
@@ -314,14 +341,28 @@ def update(
 
 
 # ---------------------------------------------------------------------------------- main loop
+def env_options(config: dict) -> dict:
+    """The task options of a run's config (a ``TrainConfig`` as a dict) beyond agents and
+    obstacles: what ``udan-eval`` must pass to meet the same task."""
+    options = {key: config.get(key, 0) for key in ("max_steps", "map_size")}
+    return {key: value for key, value in options.items() if value}
+
+
 def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
-    """The environment batch and a fresh model for ``cfg`` (validates algo and env)."""
+    """The environment batch and a fresh model for ``cfg`` (validates algo, env and options)."""
     if cfg.algo not in ALGOS:
         raise EnvConfigError(f"unknown algo {cfg.algo!r}; known: {', '.join(ALGOS)}")
-    if not cfg.env.startswith("arena/"):
-        raise EnvConfigError(f"udan-train trains on arena tasks; {cfg.env!r} is not one")
+    if cfg.update_every < 1 or cfg.bptt_steps < 0:
+        raise EnvConfigError("--update-every must be >= 1 and --bptt-steps >= 0")
+    if cfg.map_size and not cfg.env.startswith("magent/"):
+        raise EnvConfigError(f"--map-size is for MAgent tasks, not {cfg.env}")
     env = make_vec(
-        cfg.env, batch=cfg.n_envs, seed=cfg.seed, agents=cfg.agents, obstacles=cfg.obstacles
+        cfg.env,
+        batch=cfg.n_envs,
+        seed=cfg.seed,
+        agents=cfg.agents,
+        obstacles=cfg.obstacles,
+        **env_options(asdict(cfg)),
     )
     if cfg.messages not in ("on", "off"):
         raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
@@ -338,7 +379,7 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
     spec = ModelSpec(
         algo=cfg.algo,
         obs_dim=env.spec.size,
-        n_actions=5,
+        n_actions=len(env.spec.actions),
         hidden=cfg.hidden,
         attn_dim=cfg.attn_dim,
         mix_dim=cfg.mix_dim,
@@ -418,10 +459,12 @@ class Run:
         frac = min(self.progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
         return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
-    def record(self, epsilon: float, losses: dict[str, float]) -> bool:
-        """Account for the rollout just played and log it; True when a checkpoint is due."""
+    def record(self, epsilon: float, losses: dict[str, float], episodes: dict) -> bool:
+        """Account for the rollout ``episodes`` just played and log it; True when a checkpoint
+        is due. The return is per agent the episode started with (a MAgent game over leaves
+        none present at its end)."""
         env, progress = self.env, self.progress
-        per_agent = env.episode_return.sum(1) / np.maximum(env.present.sum(1), 1)
+        per_agent = env.episode_return.sum(1) / np.maximum(episodes["present"][:, 0].sum(1), 1)
         self.returns = (self.returns + per_agent.tolist())[-200:]
         progress["steps"] += env.batch * env.config.max_steps
         progress["episodes"] += env.batch
@@ -512,16 +555,18 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     actor.leader_explore = cfg.leader_explore
     while run.running:
         epsilon = run.epsilon()
-        replay.add(rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0))
+        episodes = rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0)
+        replay.add(episodes)
         losses: dict[str, float] = {}
-        if replay.size >= cfg.batch_episodes:
+        rollouts = run.progress["episodes"] // env.batch + 1
+        if replay.size >= cfg.batch_episodes and rollouts % cfg.update_every == 0:
             for _ in range(cfg.updates_per_rollout):
                 batch = replay.sample(cfg.batch_episodes, run.rng)
                 losses = update(model, target, optim, batch, cfg)
                 run.progress["updates"] += 1
                 if run.progress["updates"] % cfg.target_interval == 0:
                     target.load_state_dict(model.state_dict())
-        if run.record(epsilon, losses):
+        if run.record(epsilon, losses, episodes):
             run.save(model, target, optim)
             replay.save(replay_path)
     return run.close()
@@ -553,10 +598,23 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="continue the run in --out exactly where its checkpoint left off",
     )
+    parser.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="measure a short stretch of this run and print its projected cost (JSON and one "
+        "line) instead of training",
+    )
     args = vars(parser.parse_args(argv))
-    resume = args.pop("resume")
+    resume, calibrating = args.pop("resume"), args.pop("calibrate")
     cfg = TrainConfig(**args)
     try:
+        if calibrating:
+            from udan.budget import calibrate, summary
+
+            budget = calibrate(cfg)
+            print(json.dumps(budget, indent=1))
+            print(summary(budget))
+            return 0
         if not resume and (Path(cfg.out) / "checkpoint.pt").exists():
             raise CheckpointError(f"{cfg.out} already holds a run; use --resume or another --out")
         if resume and not (Path(cfg.out) / "checkpoint.pt").exists():

@@ -25,26 +25,38 @@ _VECTOR: dict[str, str] = {
     "arena/surround": "udan.envs.arena:make_batch",
     "arena/find_water": "udan.envs.arena:make_batch",
     "arena/hidden_goal": "udan.envs.hidden_goal:make_batch",
+    "magent/pursuit": "udan.envs.magent:make_batch",
+    "magent/tiger": "udan.envs.magent:make_batch",
+    "magent/queue": "udan.envs.magent:make_batch",
 }
 
 __all__ = [
     "EnvConfigError",
     "UnknownEnvError",
+    "code_spec",
     "env_names",
     "make",
     "make_vec",
-    "observation_layout",
 ]
 
 
-def observation_layout(obs_spec: dict) -> tuple[int, tuple[str, ...], tuple[str, ...]]:
-    """(version, channels, features) this code has for a saved spec's ``name``: each task with
-    an observation of its own versions it apart (no name: the find_water/surround spec)."""
-    from udan.envs.hidden_goal import SPEC_NAME, HiddenGoalSpec
+def code_spec(obs_spec: dict):
+    """This code's :class:`~udan.envs.observe.ObsSpec` for a saved spec (a checkpoint's or a
+    policy's): its version, channels, features and actions are what the saved ones must be. Each
+    task with an observation of its own is told apart by ``name`` (none: find_water/surround)."""
+    from udan.envs.hidden_goal import SPEC_NAME as HIDDEN_GOAL
+    from udan.envs.hidden_goal import HiddenGoalSpec
+    from udan.envs.magent_spec import SPEC_NAME as MAGENT
+    from udan.envs.magent_spec import MagentSpec
     from udan.envs.observe import ObsSpec
 
-    spec = HiddenGoalSpec if obs_spec.get("name") == SPEC_NAME else ObsSpec
-    return spec.version, spec.channels, spec.features
+    size = (obs_spec["height"], obs_spec["width"], obs_spec["view"])
+    if obs_spec.get("name") == HIDDEN_GOAL:
+        return HiddenGoalSpec(*size)
+    if obs_spec.get("name") == MAGENT:
+        scenario = ("scenario", "opponents", "n_moves", "n_attacks")
+        return MagentSpec(*size, **{key: obs_spec[key] for key in scenario})
+    return ObsSpec(*size)
 
 
 def env_names() -> list[str]:

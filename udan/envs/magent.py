@@ -37,6 +37,7 @@ which would break partial observability, so the position is read with ``get_pos`
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from inspect import signature
 from typing import Any, ClassVar
 
@@ -47,9 +48,8 @@ from magent2 import gridworld as gw
 from pettingzoo import ParallelEnv
 
 from udan.envs.errors import EnvConfigError, parse_range
+from udan.envs.magent_spec import EMBEDDING_SIZE, MagentSpec
 
-#: MAgent2 id embedding width (the value its own scenarios use).
-EMBEDDING_SIZE = 10
 #: ``state()`` pools the whole-map planes down to at most this many cells per side.
 STATE_GRID = 20
 #: Smallest map accepted: MAgent2 walls the outermost ring, leaving a 3x3 interior.
@@ -231,6 +231,25 @@ class MagentEnv(ParallelEnv):
         return (
             self._engine.get_pos(self._handle),
             self._engine.get_pos(opp) if opp is not None and self._engine.get_num(opp) else none,
+        )
+
+    def agent_cells(self) -> dict[str, np.ndarray]:
+        """``(x, y)`` cell of every learning agent the engine still holds, by agent name."""
+        ids = self._engine.get_agent_id(self._handle)
+        cells = self._engine.get_pos(self._handle)
+        return {self._id_to_name[int(i)]: cell for i, cell in zip(ids, cells, strict=True)}
+
+    def spec(self) -> MagentSpec:
+        """The observation spec of this scenario's learning agents."""
+        n_moves = len(move_offsets(self.agent_attrs["speed"]))
+        return MagentSpec(
+            self.map_size,
+            self.map_size,
+            self.view_shape[0] // 2,
+            scenario=self.metadata["name"],
+            opponents=self._opp_handle is not None,
+            n_moves=n_moves,
+            n_attacks=int(self._act_space.n) - n_moves,
         )
 
     def reset(
@@ -531,3 +550,121 @@ def make(name: str, **kwargs: Any) -> MagentEnv:
             f"{name}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
         )
     return cls(name, **kwargs)
+
+
+@dataclass(frozen=True)
+class MagentBatchConfig:
+    """What the learner and ``udan-eval`` read of a batch's task (as of an arena's config)."""
+
+    name: str
+    agents: tuple[int, int]
+    obstacles: tuple[int, int]
+    max_steps: int
+    map_size: int
+
+
+class MagentBatch:
+    """B MAgent scenario episodes behind the arena core's interface (:class:`ArenaBatch`), so
+    ``udan-train``, ``udan-eval`` and the replay treat them alike.
+
+    Slot i of an episode is PettingZoo's ``agent_i``. An agent the engine removes, and every
+    agent once the engine declares game over, is absent from the next step on: zero
+    observation, no reward, ``present`` False, so the replay masks it and nothing bootstraps
+    from it. At the time limit agents stay present (the learner bootstraps through it, as in the
+    arena). An episode that is over idles, absent and unrewarded, until the time limit, so every
+    episode of a batch has ``max_steps`` steps; ``done`` says which are over. Each reset seeds
+    its env from :attr:`rng`, so the batch's whole future is a function of that generator's
+    state (exact resume).
+    """
+
+    def __init__(
+        self, name: str, batch: int, seed: int | np.random.SeedSequence | None = 0, **options: Any
+    ) -> None:
+        if batch < 1:
+            raise EnvConfigError(f"batch must be >= 1, got {batch}")
+        self.envs = [make(name, **options) for _ in range(batch)]
+        first = self.envs[0]
+        self.spec = first.spec()
+        self.n_actions = len(self.spec.actions)
+        self.config = MagentBatchConfig(
+            name, first.agent_range, first.obstacle_range, first.max_steps, first.map_size
+        )
+        self.batch, self.slots = batch, first.agent_range[1]
+        self.rng = np.random.default_rng(seed)
+        b, n = batch, self.slots
+        self.pos = np.zeros((b, n, 2), dtype=np.int64)
+        self.present = np.zeros((b, n), dtype=bool)
+        self.joined = np.zeros((b, n), dtype=bool)
+        self.episode_return = np.zeros((b, n), dtype=np.float32)
+        self.target_score = np.zeros(b, dtype=np.float32)  # no target here: 0 (udan-eval reads it)
+        self.t = np.zeros(b, dtype=np.int64)
+        self.over = np.zeros(b, dtype=bool)
+        self._obs = np.zeros((b, n, self.spec.size), dtype=np.float32)
+        self._names = first.possible_agents
+
+    def reset(self, where: np.ndarray | None = None) -> np.ndarray:
+        """Start new episodes in the envs selected by the bool mask ``where`` (default all)."""
+        idx = np.arange(self.batch) if where is None else np.flatnonzero(where)
+        for b in idx:
+            obs, _ = self.envs[b].reset(seed=int(self.rng.integers(2**63 - 1)))
+            self.present[b] = False
+            self._obs[b] = 0.0
+            for name, row in obs.items():
+                slot = self._names.index(name)
+                self.present[b, slot] = True
+                self._obs[b, slot] = row
+            self.joined[b] = self.present[b]
+            self.episode_return[b] = 0.0
+            self.t[b] = 0
+            self.over[b] = False
+            self._read_cells(b)
+        return self.observe()
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One action per slot (ignored for absent slots); a step past the time limit is an
+        error. Returns (observations (B, N, D), rewards (B, N), done (B,))."""
+        if (self.t >= self.config.max_steps).any():
+            first = np.flatnonzero(self.t >= self.config.max_steps)[0]
+            raise ValueError(f"episode over in env {first}: reset it first")
+        actions = np.asarray(actions)
+        if actions.shape != (self.batch, self.slots) or actions.dtype.kind not in "iu":
+            raise ValueError(f"actions must be integers shaped {(self.batch, self.slots)}")
+        chosen = actions[self.present]
+        if chosen.size and (chosen.min() < 0 or chosen.max() >= self.n_actions):
+            raise ValueError(f"actions must lie in 0..{self.n_actions - 1}")
+        reward = np.zeros((self.batch, self.slots), dtype=np.float32)
+        self.joined[:] = False
+        for b in np.flatnonzero(~self.over):
+            slots = np.flatnonzero(self.present[b])
+            names = [self._names[i] for i in slots]
+            obs, rewards, terminated, _, _ = self.envs[b].step(
+                {name: int(actions[b, i]) for name, i in zip(names, slots, strict=True)}
+            )
+            for name, i in zip(names, slots, strict=True):
+                reward[b, i] = rewards[name]
+                self.present[b, i] = not terminated[name]
+                self._obs[b, i] = obs[name] if self.present[b, i] else 0.0
+            self.over[b] = not self.present[b].any()
+            self._read_cells(b)
+        self.t += 1
+        self.episode_return += reward
+        return self.observe(), reward, self.over | (self.t >= self.config.max_steps)
+
+    def _read_cells(self, b: int) -> None:
+        for name, cell in self.envs[b].agent_cells().items():
+            self.pos[b, self._names.index(name)] = cell
+
+    def observe(self) -> np.ndarray:
+        """Every slot's observation (B, N, spec.size); absent slots are zero."""
+        return self._obs.copy()
+
+    def global_state(self) -> np.ndarray:
+        """Each env's :meth:`MagentEnv.state` (B, S), for QMIX's mixer and COMA's critic."""
+        return np.stack([env.state() for env in self.envs])
+
+
+def make_batch(
+    name: str, batch: int, seed: int | np.random.SeedSequence | None = 0, **options: Any
+) -> MagentBatch:
+    """Registry factory: ``magent/<scenario>`` -> :class:`MagentBatch` of ``batch`` envs."""
+    return MagentBatch(name, batch=batch, seed=seed, **options)

@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from udan.envs.rules import N_ACTIONS
+from udan.envs.rules import ACTIONS, N_ACTIONS
 
 #: Bumped whenever the layout or meaning of an observation changes; exported models carry it.
 OBS_SPEC_VERSION = 1
@@ -42,6 +42,8 @@ class ObsSpec:
     version: int = OBS_SPEC_VERSION
     channels: ClassVar[tuple[str, ...]] = CHANNELS
     features: ClassVar[tuple[str, ...]] = FEATURES
+    actions: ClassVar[tuple[str, ...]] = ACTIONS
+    """The policy's outputs, in order (the cars' five moves)."""
 
     @property
     def window(self) -> int:

@@ -1,0 +1,82 @@
+"""Every model committed under models/ loads, plays and exports exactly as it did before MAgent
+training was added: the digests below were made with that code (commit 92dec93)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from udan.checkpoint import load_model
+from udan.evaluate import CheckpointPolicy, evaluate
+from udan.export.graph import build_graph
+from udan.export.metadata import build_metadata
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+#: checkpoint folder -> (sha256 of its per-episode scores in a small evaluation, sha256 of the
+#: ONNX file exported from it)
+BEFORE = {
+    "baselines/find_water_coma": (
+        "ac2dde33cc1af75d8b736ecd0d8655f9ea2b111aa9f88d3f5d217e6303fd672b",
+        "34107cc944c2c08b46184f09857fbf809d03e1b6da225a8e5eb884394173cf88",
+    ),
+    "baselines/find_water_iql": (
+        "f47d851d62b718ab6116437c664787275c6815137ed4a5ef947e96cd540201f2",
+        "abae27f5fcd45dc45a4cc780f47b3f5e46cdb998bda2dd30b87e9b9a359b7973",
+    ),
+    "baselines/find_water_qmix": (
+        "94eb77668b7cf552651ea695722ec7c68e84eaee692c582080bb8ce35904fc8d",
+        "d90fdea9c03bf00cd23751de66efed4b25c66d8525905931f3c6ea073303b143",
+    ),
+    "baselines/find_water_vdn": (
+        "608e267864379f879e30c210bccb5f5d6fa67ab0784e39976e36828cf9e83b35",
+        "16f1f76169d213d017a6f96deb77f28d8211b81a30c7a09ccc7e92c9414dea67",
+    ),
+    "find_water": (
+        "43cdf626a99dd94ee2e6299808980431fbfdd208e3610a798303f23a2d315914",
+        "bc0f4886feedcb69a12ce789c91f9d70a8cc95bfca9108ac48edb31d4ac99fa6",
+    ),
+    "hidden_goal": (
+        "00469081085ac973045309713b502255bc98d6a0cce02d00eeb4da1991dd7268",
+        "8087215059e6a8742a6d655251f0d85bb34fb1b2a341c663674568dd06bea888",
+    ),
+    "hidden_goal/iql": (
+        "db3d64315937200a65aa4421b8f9e4a5e8d7b49aa0d2605366cdd52d80b11802",
+        "4d76386ced44b7941d5b9961aa12deee32194e1a5817601cbddaffe906a13a6c",
+    ),
+    "hidden_goal/no_messages": (
+        "f87ca86a8ca1637691df7cf72adc42a97af29877964175f6844797669e578510",
+        "30bb0ccb9d6944f25b25e4b7e01940f1190e76a906fe9795c353435581865a9b",
+    ),
+    "surround": (
+        "3b47812c6a3f27a1ce6e8154d8401c1607a1916f994fdddaef78d6afe9981577",
+        "6416178c2244da4283a471b14fa98b31434c9bef21f747c7b7d1949576c32763",
+    ),
+}
+
+
+def test_every_committed_checkpoint_is_listed():
+    found = {str(p.parent.relative_to(MODELS)) for p in MODELS.rglob("checkpoint.pt")}
+    assert found == set(BEFORE)
+
+
+@pytest.mark.parametrize("folder", sorted(BEFORE))
+def test_a_committed_model_plays_and_exports_as_before(folder):
+    torch.set_num_threads(1)
+    path = MODELS / folder / "checkpoint.pt"
+    model, ckpt = load_model(path)
+    hidden_goal = ckpt["env"] == "arena/hidden_goal"
+    agents, obstacles = ((2, 3), (0, 0)) if hidden_goal else ((1, 3), (0, 1))
+    results = evaluate(ckpt["env"], CheckpointPolicy(model), agents, obstacles, 6, 0)
+    scores = np.concatenate([r.scores for r in results]).astype(np.float64)
+    assert hashlib.sha256(scores.tobytes()).hexdigest() == BEFORE[folder][0]
+
+    checkpoint_sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    meta = build_metadata(ckpt, dataclasses.asdict(model.spec), checkpoint_sha)
+    assert meta.pop("agents") == str(ckpt["config"]["agents"])  # the one entry added since
+    exported = build_graph(model, meta).SerializeToString()
+    assert hashlib.sha256(exported).hexdigest() == BEFORE[folder][1]

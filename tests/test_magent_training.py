@@ -1,0 +1,316 @@
+"""Training on the MAgent scenarios: the vectorised adapter (early ends, masks, exact resume),
+the learner's masks for episodes that end early, the budget, and the CLIs end to end."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+
+import numpy as np
+import pytest
+import torch
+from test_train import one_line_exit_2, quiet, run_cli
+
+from udan.budget import calibrate, planned_counts
+from udan.checkpoint import CheckpointError, load_checkpoint
+from udan.envs import make_vec
+from udan.envs.magent import make
+from udan.learner import Actor, ModelSpec, MultiAgentQ
+from udan.train import TrainConfig, rollout, train, unroll, update
+
+pytestmark = pytest.mark.magent
+#: queue on an 8x8 map, 1-3 agents: a lone agent is a line at once, so episodes end early.
+SHORT_QUEUE = {"agents": "1-3", "obstacles": 0, "map_size": 8, "max_steps": 12}
+TINY = {
+    "n_envs": 4,
+    "batch_episodes": 4,
+    "updates_per_rollout": 2,
+    "buffer_episodes": 16,
+    "hidden": 16,
+    "attn_dim": 8,
+    "mix_dim": 8,
+    "leader_explore": 0.3,
+}
+
+
+def _random_episode(env, seed: int) -> list[tuple]:
+    """Play the batch with random actions to its time limit; every step's outputs."""
+    rng = np.random.default_rng(seed)
+    env.reset()
+    steps = []
+    for _ in range(env.config.max_steps):
+        actions = rng.integers(0, env.n_actions, (env.batch, env.slots))
+        obs, reward, done = env.step(actions)
+        steps.append((actions, obs, reward, done, env.present.copy()))
+    return steps
+
+
+def test_the_batch_plays_what_each_env_plays_and_idles_after_a_game_over():
+    env = make_vec("magent/queue", batch=6, seed=2, **SHORT_QUEUE)
+    steps = _random_episode(env, seed=5)
+    ended = [b for b in range(env.batch) if steps[-2][3][b]]  # over before the time limit
+    assert ended, "no queue episode lined up early: the test would check nothing"
+    # the same episodes replayed on single envs, seeded as the batch seeds them
+    draws = np.random.default_rng(2)
+    seeds = [int(draws.integers(2**63 - 1)) for _ in range(env.batch)]
+    for b in range(env.batch):
+        single = make("magent/queue", **SHORT_QUEUE)
+        obs, _ = single.reset(seed=seeds[b])
+        for actions, batch_obs, reward, done, present in steps:
+            if not single.agents:  # game over: absent, unrewarded, zero observations
+                assert not present[b].any() and done[b]
+                assert (reward[b] == 0).all() and (batch_obs[b] == 0).all()
+                continue
+            names = list(single.agents)
+            obs, rewards, terminated, _, _ = single.step(
+                {a: int(actions[b, int(a.split("_")[1])]) for a in names}
+            )
+            for a in names:
+                slot = int(a.split("_")[1])
+                assert reward[b, slot] == pytest.approx(rewards[a])
+                assert present[b, slot] == (not terminated[a])
+                if present[b, slot]:
+                    np.testing.assert_array_equal(batch_obs[b, slot], obs[a])
+    with pytest.raises(ValueError, match="reset it first"):
+        env.step(np.zeros((env.batch, env.slots), np.int64))
+
+
+def test_rollout_masks_agents_after_a_game_over_and_keeps_them_at_the_time_limit():
+    env = make_vec("magent/queue", batch=6, seed=2, **SHORT_QUEUE)
+    torch.manual_seed(0)
+    model = MultiAgentQ(ModelSpec(algo="udan", obs_dim=env.spec.size, n_actions=env.n_actions))
+    episodes = rollout(env, Actor(model, env.batch, env.slots), 1.0, np.random.default_rng(0), True)
+    present, rewards = episodes["present"], episodes["rewards"]
+    assert present.shape == (6, 13, 3) and episodes["state"].shape[:2] == (6, 13)
+    started = present[:, 0].sum(1)
+    over = ~present[:, -1].any(1)
+    assert over.any() and (~over).any()
+    for b in np.flatnonzero(over):
+        end = int(np.flatnonzero(~present[b].any(1))[0])  # first observation with nobody
+        assert (rewards[b, end:] == 0).all() and (episodes["obs"][b, end:] == 0).all()
+        assert (episodes["groups"][b, end:] == -1).all()
+    # at the time limit the agents are still there: the learner bootstraps through it
+    assert (present[~over, -1].sum(1) == started[~over]).all()
+
+
+def _batch_with_an_early_end(algo: str):
+    env = make_vec("magent/queue", batch=6, seed=2, **SHORT_QUEUE)
+    cfg = TrainConfig(algo=algo, env="magent/queue", **{**TINY, "n_envs": 6, "batch_episodes": 6})
+    spec = ModelSpec(
+        algo=algo,
+        obs_dim=env.spec.size,
+        n_actions=env.n_actions,
+        hidden=16,
+        state_dim=env.global_state().shape[1] if algo == "qmix" else 0,
+        mix_agents=env.slots if algo == "qmix" else 0,
+    )
+    torch.manual_seed(0)
+    model = MultiAgentQ(spec)
+    episodes = rollout(env, Actor(model, 6, env.slots), 1.0, np.random.default_rng(0), True)
+    return cfg, model, episodes
+
+
+@pytest.mark.parametrize("algo", ["qmix", "vdn", "iql", "udan"])
+def test_steps_after_a_game_over_do_not_reach_the_td_loss(algo):
+    """Whatever the observations and states after a game over, the loss is the same: the idle
+    steps are left out and the last real step does not bootstrap from them."""
+    cfg, model, episodes = _batch_with_an_early_end(algo)
+    idle = ~episodes["present"].any(2)  # (E, T1): nobody there any more
+    assert idle.any()
+    noisy = dict(episodes)
+    rng = np.random.default_rng(3)
+    noisy["obs"] = np.where(
+        idle[..., None, None], rng.random(episodes["obs"].shape), episodes["obs"]
+    )
+    noisy["state"] = np.where(
+        idle[..., None], rng.random(episodes["state"].shape), episodes["state"]
+    )
+    losses = []
+    for batch in (episodes, noisy):
+        trained = MultiAgentQ(model.spec)
+        trained.load_state_dict(model.state_dict())
+        optim = torch.optim.SGD(trained.parameters(), lr=0.0)
+        losses.append(update(trained, trained, optim, batch, cfg)["td_loss"])
+    assert losses[0] == losses[1]
+    assert np.isfinite(losses[0])
+
+
+def test_truncated_backprop_gives_the_same_features_and_cuts_the_gradient():
+    torch.manual_seed(0)
+    model = MultiAgentQ(ModelSpec(algo="vdn", obs_dim=7, n_actions=3, hidden=8))
+    obs = torch.rand(2, 9, 3, 7, requires_grad=True)
+    fresh = torch.zeros(2, 9, 3, dtype=torch.bool)
+    fresh[:, 0] = True
+    whole, cut = unroll(model, obs, fresh), unroll(model, obs, fresh, bptt_steps=4)
+    torch.testing.assert_close(whole, cut, rtol=0, atol=1e-6)
+    (grad_whole,) = torch.autograd.grad(whole[-1].sum(), obs)
+    (grad_cut,) = torch.autograd.grad(cut[-1].sum(), obs)
+    assert grad_whole[:, :8].abs().sum() > 0  # step 8 depends on the steps before it...
+    assert grad_cut[:, :8].abs().sum() == 0  # ...but its gradient stops at its chunk (8-11)
+    assert grad_cut[:, 8].abs().sum() > 0
+
+
+def test_an_interrupted_magent_run_resumes_exactly(tmp_path):
+    def config(out):
+        return TrainConfig(
+            env="magent/queue",
+            steps=192,
+            checkpoint_every=96,
+            out=str(tmp_path / out),
+            **{**TINY, **SHORT_QUEUE},
+        )
+
+    straight = load_checkpoint(train(config("a"), log=quiet))
+
+    def interrupt_after_first_checkpoint(*args, **kwargs):
+        if args and "steps 144" in args[0]:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(config("b"), log=interrupt_after_first_checkpoint)
+    with pytest.raises(CheckpointError, match="map_size"):
+        train(dataclasses.replace(config("b"), map_size=9), resume=True, log=quiet)
+    resumed = load_checkpoint(train(config("b"), resume=True, log=quiet))
+    for key in ("weights", "target_weights"):
+        assert all(torch.equal(straight[key][k], resumed[key][k]) for k in straight[key]), key
+    assert straight["progress"]["updates"] == resumed["progress"]["updates"] > 0
+    assert straight["obs_spec"]["name"] == "magent" and straight["model_spec"]["n_actions"] == 5
+
+
+@pytest.mark.parametrize("options", [{}, {"update_every": 3, "batch_episodes": 8}])
+def test_the_budget_counts_what_the_run_does(tmp_path, options):
+    cfg = TrainConfig(
+        steps=1400, out=str(tmp_path / "r"), checkpoint_every=600, **{**TINY, **options}
+    )
+    progress = load_checkpoint(train(cfg, log=quiet))["progress"]
+    counts = planned_counts(cfg, 50)
+    assert counts["rollouts"] * cfg.n_envs == progress["episodes"]
+    assert counts["updates"] == progress["updates"]
+    assert counts["checkpoints"] == 3
+
+
+#: The weights of five short find_water runs (one per learner) made with the code before MAgent
+#: training and the cheaper-training options were added (commit 92dec93): arena runs must stay
+#: bit-identical.
+BEFORE = {
+    "udan": "4878087d2b5b64dfec43212d40513f8d019533957309446e8428e48973a12f57",
+    "qmix": "26ee7b95cfefe9cfafea2536888c38210dc07af31f7618d0e4d62c88b39c0828",
+    "vdn": "cc4f0e1f78e59b7759dddd1e18c21ac4f707b4e37d989c5d406e62b5ddef74ea",
+    "iql": "53383b1bcc7c9de027a60510232914def70d45c74bea033fc6a21192c078ee9b",
+    "coma": "f974128127969ad473179fb2084451703f31f4c701ceaec702e10ceddc773e2c",
+}
+
+
+@pytest.mark.parametrize("algo", sorted(BEFORE))
+def test_find_water_runs_give_the_weights_they_gave_before(tmp_path, algo):
+    agents = {"qmix": "3", "coma": "3", "vdn": "2-4"}.get(algo, "1-5")
+    cfg = TrainConfig(
+        algo=algo,
+        agents=agents,
+        obstacles="0-5",
+        steps=1000,
+        n_envs=4,
+        batch_episodes=4,
+        updates_per_rollout=2,
+        buffer_episodes=50,
+        hidden=16,
+        attn_dim=8,
+        mix_dim=8,
+        target_interval=3,
+        leader_explore=0.3,
+        checkpoint_every=1e9,
+        seed=3,
+        out=str(tmp_path / algo),
+    )
+    weights = load_checkpoint(train(cfg, log=quiet))["weights"]
+    digest = hashlib.sha256()
+    for key in sorted(weights):
+        digest.update(key.encode())
+        digest.update(weights[key].numpy().tobytes())
+    assert digest.hexdigest() == BEFORE[algo]
+
+
+@pytest.mark.slow
+def test_the_projection_is_within_30_percent_of_a_real_run(tmp_path):
+    cfg = TrainConfig(
+        env="magent/queue",
+        steps=2880,
+        checkpoint_every=1e9,
+        out=str(tmp_path / "r"),
+        **{**TINY, "n_envs": 8, "batch_episodes": 8, "updates_per_rollout": 4},
+        **{**SHORT_QUEUE, "agents": "3-6", "max_steps": 30, "map_size": 12},
+    )
+    budget = calibrate(cfg)
+    real = load_checkpoint(train(cfg, log=quiet))["progress"]["seconds"]
+    assert budget["updates"] > budget["rollouts"] > 10
+    assert abs(budget["projected_seconds"] - real) <= 0.3 * real, (budget, real)
+
+
+def test_calibrate_prints_json_and_one_line_and_writes_no_run(tmp_path):
+    small = ["--env", "magent/queue", "--agents", "2-4", "--map-size", 10, "--max-steps", 20]
+    out = run_cli(*small, "--n-envs", 2, "--batch-episodes", 2, "--hidden", 16,
+                  "--out", tmp_path / "r", "--calibrate")  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    text, line = out.stdout.rstrip().rsplit("\n", 1)
+    budget = json.loads(text)
+    assert budget["rollouts"] == 50_000 and budget["updates"] == 4 * 50_000
+    assert budget["seconds_per_update"] > 0 and budget["seconds_per_env_step"] > 0
+    assert line.startswith("budget: udan on magent/queue N 2-4") and "core-hours" in line
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--env", "magent/chess"], "unknown env"),
+        (["--env", "magent/queue", "--agents", "8-40"], "cannot line up"),
+        (["--env", "magent/pursuit", "--agents", "0-3"], "at least 1"),
+        (["--env", "magent/tiger", "--agents", "20", "--map-size", "10"], "do not fit"),
+        (["--env", "arena/find_water", "--map-size", "30"], "--map-size is for MAgent"),
+        (["--env", "magent/queue", "--algo", "coma", "--agents", "3", "--calibrate"], "coma"),
+    ],
+)
+def test_bad_magent_train_input(args, fragment, tmp_path):
+    one_line_exit_2(run_cli("--steps", 10, "--out", tmp_path / "r", *args), fragment)
+
+
+@pytest.mark.slow
+def test_magent_end_to_end_through_the_clis(tmp_path):
+    """udan-train, udan-eval with ablations, udan-export with ONNX parity, and the edge's and
+    udan-eval's refusals, on magent/pursuit at tiny sizes."""
+    small = ["--env", "magent/pursuit", "--map-size", 16, "--max-steps", 20, "--steps", 480,
+             "--n-envs", 4, "--batch-episodes", 4, "--updates-per-rollout", 2, "--hidden", 16,
+             "--leader-explore", 0.3]  # fmt: skip
+    for algo, agents in (("udan", "2-4"), ("qmix", "3")):
+        out = run_cli(*small, "--algo", algo, "--agents", agents, "--out", tmp_path / algo,
+                      timeout=600)  # fmt: skip
+        assert out.returncode == 0, out.stderr
+    udan, qmix = tmp_path / "udan" / "checkpoint.pt", tmp_path / "qmix" / "checkpoint.pt"
+    ckpt = load_checkpoint(udan)
+    assert ckpt["obs_spec"]["scenario"] == "magent/pursuit" and ckpt["config"]["agents"] == "2-4"
+    assert ckpt["model_spec"]["obs_dim"] == 635 and ckpt["model_spec"]["n_actions"] == 17
+    out = run_cli(udan, "--episodes", 6, "--ablate", "messages=shuffle,leaders=random",
+                  "--out", tmp_path / "eval", tool="udan-eval", timeout=600)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "| agents | score [95 % CI] | episodes |" in out.stdout
+    assert all(f"\n| {n} | " in out.stdout for n in (2, 3, 4))
+    assert "obstacles \\ agents" not in out.stdout
+    report = (tmp_path / "eval" / "report.md").read_text()
+    assert "Δ messages=shuffle" in report and "Δ leaders=random" in report
+    one_line_exit_2(run_cli(qmix, "--ablate", "messages=zero", tool="udan-eval"), "has no messages")
+    one_line_exit_2(run_cli(udan, "--agents", "2-200", tool="udan-eval"), "do not fit")
+    one_line_exit_2(run_cli(udan, "--env", "magent/chess", tool="udan-eval"), "unknown env")
+    policy = tmp_path / "policy.onnx"
+    out = run_cli(udan, "-o", policy, "--sizes", "1,3,20", tool="udan-export", timeout=600)
+    assert out.returncode == 0 and "verdict: PASS" in out.stdout, out.stdout + out.stderr
+    out = run_cli("verify", policy, udan, "--sizes", "2,7", tool="udan-export")
+    assert out.returncode == 0 and "verdict: PASS" in out.stdout, out.stdout + out.stderr
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(policy)).metadata_props}
+    assert meta["env"] == "magent/pursuit" and meta["agents"] == "2-4"
+    assert len(json.loads(meta["actions"])) == 17 and meta["obs_dim"] == "635"
+    assert json.loads(meta["obs_spec"])["name"] == "magent"
+    edge = run_cli("--sim", "--model", policy, tool="udan-edge")
+    one_line_exit_2(edge, "not an arena task the cars can play")
