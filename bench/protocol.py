@@ -36,13 +36,18 @@ def genuine_frames() -> tuple[CarCore, ep.EdgeProtocol, list[bytes], int]:
 
     Shared with tests/test_protocol_fuzz.py, so the hypothesis tests and this fuzz round mutate
     the same frames. The car has handled the time request and the second command; the other
-    edge frames are still fresh to it.
+    edge frames are still fresh to it. Every type is there, the handshake's (JOIN, ACCEPT,
+    HELLO) included.
     """
     car_now = 80_000
     car = CarCore(1, KEY, marker=3)
     edge = ep.EdgeProtocol({1: KEY}, clock=lambda: 5_000_000_000)
-    pool = [car.boot(0xFEED, car_now)]
+    pool = [car.boot(car_now)]
     edge.receive(pool[0])
+    pool += [frame for _, frame in edge.datagrams_to_send()]  # the ACCEPT
+    car.handle(pool[-1], car_now)
+    pool.append(car.status(car_now, Telemetry()))
+    edge.receive(pool[-1])
     req = edge.encode_time_request(1)
     pool += [req, *car.handle(req, car_now).replies]
     edge.receive(pool[-1])
@@ -51,7 +56,8 @@ def genuine_frames() -> tuple[CarCore, ep.EdgeProtocol, list[bytes], int]:
     pool += [edge.encode_estop(1, True), edge.encode_estop(1, False)]
     pool.append(car.status(car_now, Telemetry(row=1, col=2, moving=True, done_seq=3)))
     pool.append(car.leave(car_now, 1))
-    pool += list(car.handle(pool[4], car_now).replies)
+    pool += list(car.handle(pool[6], car_now).replies)
+    pool.append(ep.encode(ep.MsgType.HELLO, 1, 0, 0, 0, KEY, {"reason": 0}))
     return car, edge, pool, car_now
 
 
@@ -98,7 +104,7 @@ def fuzz(n: int, seed: int = 1) -> dict[str, object]:
         try:
             out = car.handle(data, car_now)
             verdicts[out.verdict] += 1
-            if out.verdict in ("accepted", "duplicate") or out.motor or out.halt:
+            if out.verdict in ("accepted", "duplicate", "joined") or out.motor or out.halt:
                 forgeries += 1
         except Exception as err:  # counting them is the point
             crashes += 1

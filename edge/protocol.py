@@ -214,7 +214,8 @@ def decode(data: bytes) -> Decoded:
         raise FrameError("malformed", "bad length")
     if flags or car_id == 0 or car_id == 0xFFFF:
         raise FrameError("malformed", "reserved header value")
-    if (session == 0 or seq == 0) != (kind in HANDSHAKE) or (kind in HANDSHAKE and seq):
+    handshake = kind in HANDSHAKE
+    if (session != 0 or seq != 0) if handshake else (session == 0 or seq == 0):
         raise FrameError("malformed", "session and seq are 0 on handshake frames only")
     link_id = data[_HEAD_LEN + plen]
     if link_id != (1 if raw_type & 0x80 else 0):

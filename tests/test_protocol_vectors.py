@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
+import protocol_vectors
 import pytest
 
 from udan.edge import protocol as ep
@@ -18,12 +18,19 @@ VECTORS = json.loads((Path(__file__).parents[1] / "docs" / "protocol_vectors.jso
 KEYS = {int(k): bytes.fromhex(v) for k, v in VECTORS["keys"].items()}
 
 
-def _event_dict(event: ep.Event) -> dict[str, object]:
-    out: dict[str, object] = {"kind": type(event).__name__}
-    for f in dataclasses.fields(event):
-        value = getattr(event, f.name)
-        out[f.name] = int(value) if isinstance(value, enum.Enum) else value
-    return out
+def _fixed(nonces: list[str]) -> Iterator[bytes]:
+    return iter(bytes.fromhex(n) for n in nonces)
+
+
+def test_the_file_is_what_the_implementation_produces() -> None:
+    assert protocol_vectors.build() == VECTORS
+
+
+def test_both_sides_derive_the_same_session() -> None:
+    v = VECTORS["session"]
+    args = (KEYS[v["car_id"]], bytes.fromhex(v["car_nonce"]), bytes.fromhex(v["edge_nonce"]))
+    expected = (v["session_id"], bytes.fromhex(v["session_key"]))
+    assert ep.derive_session(*args) == wire.session_for(*args) == expected
 
 
 @pytest.mark.parametrize("vec", VECTORS["frames"], ids=lambda v: v["name"])
@@ -44,25 +51,29 @@ def test_valid_frame_vectors_reencode_identically_on_both_sides() -> None:
     for vec in (v for v in VECTORS["frames"] if v["valid"]):
         d = vec["decoded"]
         kind = next(k for k, n in wire.TYPE_NAMES.items() if n == d["type"])
-        key = KEYS[d["car_id"]]
-        args = (d["car_id"], d["session"], d["seq"], d["timestamp_us"], key)
-        assert wire.encode(kind, *args, **d["payload"]).hex() == vec["hex"]
-        assert ep.encode(ep.MsgType(kind), *args, d["payload"]).hex() == vec["hex"]
+        fields = {k: bytes.fromhex(v) if isinstance(v, str) else v for k, v in d["payload"].items()}
+        frame = bytes.fromhex(vec["hex"])
+        # the tag is checked by the conversations; here: every other byte, on both encoders
+        args = (d["car_id"], d["session"], d["seq"], d["timestamp_us"], bytes(32))
+        assert wire.encode(kind, *args, **fields)[:-6] == frame[:-6]
+        assert ep.encode(ep.MsgType(kind), *args, fields)[:-6] == frame[:-6]
 
 
 def test_car_core_replays_the_conversation() -> None:
     spec = VECTORS["car"]
+    nonces = _fixed(spec["nonces"])
     core = CarCore(
         spec["car_id"],
         KEYS[spec["car_id"]],
         spec["marker"],
         watchdog_us=spec["watchdog_us"],
         max_validity_us=spec["max_validity_us"],
+        nonce=lambda: next(nonces),
     )
     for step in spec["steps"]:
         op, now = step["op"], step["now_us"]
         if op == "boot":
-            assert core.boot(step["session"], now).hex() == step["send"]
+            assert core.boot(now).hex() == step["send"]
         elif op == "receive":
             out = core.handle(bytes.fromhex(step["frame"]), now)
             assert out.verdict == step["verdict"], step["note"]
@@ -71,6 +82,8 @@ def test_car_core_replays_the_conversation() -> None:
             assert out.halt == step["halt"], step["note"]
         elif op == "poll":
             assert core.poll(now) == step["tripped"]
+        elif op == "leave":
+            assert core.leave(now, step["reason"]).hex() == step["send"]
         else:
             assert core.status(now, Telemetry(**step["telemetry"])).hex() == step["send"]
 
@@ -78,15 +91,24 @@ def test_car_core_replays_the_conversation() -> None:
 def test_edge_core_replays_the_conversation() -> None:
     spec = VECTORS["edge"]
     clock = {"ns": 0}
+    nonces = _fixed(spec["nonces"])
     edge = ep.EdgeProtocol(
-        {c: KEYS[c] for c in spec["cars"]}, clock=lambda: clock["ns"], drift_ppm=spec["drift_ppm"]
+        {c: KEYS[c] for c in spec["cars"]},
+        clock=lambda: clock["ns"],
+        drift_ppm=spec["drift_ppm"],
+        nonce=lambda: next(nonces),
     )
     for step in spec["steps"]:
-        clock["ns"] = step["edge_ns"]
         op = step["op"]
+        if op == "session":
+            assert edge.session(step["car_id"]) == step["session"]
+            continue
+        clock["ns"] = step["edge_ns"]
         if op == "receive":
             event = edge.receive(bytes.fromhex(step["frame"]))
-            assert _event_dict(event) == step["event"], step["note"]
+            assert protocol_vectors.event_dict(event) == step["event"], step["note"]
+            sent = [f.hex() for _, f in edge.datagrams_to_send()]
+            assert sent == step["send"], step["note"]
         elif op == "time_request":
             assert edge.encode_time_request(step["car_id"]).hex() == step["send"]
         elif op == "command":
@@ -97,9 +119,26 @@ def test_edge_core_replays_the_conversation() -> None:
             assert frame.hex() == step["send"]
 
 
-def test_reboot_vector_is_detected_by_the_edge() -> None:
-    joins = [s for s in VECTORS["edge"]["steps"] if s.get("event", {}).get("kind") == "Joined"]
-    assert [j["event"]["previous_session"] is not None for j in joins] == [False, True]
+def test_conversations_cover_the_life_cycle() -> None:
+    """The vectors show what the spec's prose promises, not only what the code happens to do."""
+    events = [s["event"] for s in VECTORS["edge"]["steps"] if s["op"] == "receive"]
+    joined = [e for e in events if e["kind"] == "Joined"]
+    assert [(e["previous_session"] is not None, e["reboot"]) for e in joined] == [
+        (False, False),
+        (True, False),
+        (True, True),
+    ]
+    assert sum(e.get("reason") == "rate_limited" for e in events) == 1
+    refusals = [e["detail"] for e in events if e.get("reason") == "wrong_version"]
+    assert refusals == [
+        "car 1 sent a protocol v1 frame, this edge speaks v2: refused",
+        "car 1 speaks protocol v3-v4, this edge v2: refused",
+    ]
+    verdicts = [s.get("verdict") for s in VECTORS["car"]["steps"]]
+    for verdict in ("joined", "hello", "stale_accept", "wrong_session", "duplicate", "replay"):
+        assert verdict in verdicts
+    floods = [s for s in VECTORS["car"]["steps"] if "of 9 at one instant" in s.get("note", "")]
+    assert [len(s["replies"]) for s in floods] == [1] * 8 + [0]
 
 
 def test_crc16_check_value() -> None:
