@@ -316,14 +316,18 @@ def conversation() -> Script:
 def frame_vectors(s: Script) -> list[dict[str, Any]]:
     """Single frames: every type as the conversation sent it, and broken ones with the reason."""
     by_type: dict[int, bytes] = {}
-    for step in s.car_steps + s.edge_steps:
-        for hexes in (step.get("frame"), step.get("send"), *step.get("replies", [])):
-            for h in [hexes] if isinstance(hexes, str) else hexes or []:
-                data = bytes.fromhex(h)
-                try:
-                    by_type.setdefault(ep.decode(data).type, data)
-                except ep.FrameError:
-                    continue
+    taken = ("accepted", "joined", "hello", "duplicate")
+    for step in s.edge_steps + s.car_steps:
+        genuine = [*step.get("replies", [])]
+        genuine += [step["send"]] if isinstance(step.get("send"), str) else step.get("send", [])
+        if step.get("verdict") in taken or step.get("event", {}).get("kind") not in (
+            None,
+            "Rejected",
+        ):
+            genuine.append(step["frame"])
+        for h in genuine:
+            data = bytes.fromhex(h)
+            by_type.setdefault(ep.decode(data).type, data)
     out = []
     for kind in ep.MsgType:
         data = by_type[kind]
@@ -408,6 +412,9 @@ def build() -> dict[str, Any]:
             "check": f"0x{serial_link.crc16(b'123456789'):04x}",
         },
         "cobs": cobs_vectors(),
+        "cobs_decode_only": [
+            {"encoded": "ff" + bytes(range(1, 255)).hex() + "01", "raw": bytes(range(1, 255)).hex()}
+        ],
         "serial": [
             {"name": name, "body": body.hex(), "line": serial_link.frame(body).hex()}
             for name, body in [

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -11,11 +12,14 @@ import protocol_vectors
 import pytest
 
 from udan.edge import protocol as ep
+from udan.edge import transport
 from udan.firmware_mock import can_car, serial_link, wire
 from udan.firmware_mock.core import CarCore, Telemetry
 
 VECTORS = json.loads((Path(__file__).parents[1] / "docs" / "protocol_vectors.json").read_text())
 KEYS = {int(k): bytes.fromhex(v) for k, v in VECTORS["keys"].items()}
+SPEC = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+EXAMPLES = dict(re.findall(r"```\n# vector: (\S+)\n(.*?)```", SPEC, re.S))
 
 
 def _fixed(nonces: list[str]) -> Iterator[bytes]:
@@ -173,3 +177,63 @@ def test_can_vectors(vec: dict) -> None:
     else:
         msg = can.Message(arbitration_id=vec["can_id"], is_extended_id=False, is_fd=True, data=data)
         assert can_car.frame_from(msg, car_id) == frame
+
+
+def _example_bytes(text: str) -> bytes:
+    """The hex column of a worked example: what precedes the comment on each line."""
+    column = [re.split(r"\s{2,}", line.strip())[0] for line in text.splitlines()]
+    return bytes.fromhex(" ".join(column).replace("|", " "))
+
+
+def _example_values(text: str) -> dict[str, str]:
+    return dict(re.findall(r"^(\w+) = (\S+)$", text, re.M))
+
+
+def test_the_spec_shows_its_worked_examples() -> None:
+    assert set(EXAMPLES) == {
+        "frames/command", "frames/join", "frames/accept", "session", "edge/deadline"
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("name", ["command", "join", "accept"])
+def test_spec_frame_examples_are_the_vectors(name: str) -> None:
+    frame = next(f for f in VECTORS["frames"] if f["name"] == name)
+    assert _example_bytes(EXAMPLES[f"frames/{name}"]).hex() == frame["hex"]
+
+
+def test_spec_session_example_is_the_vector() -> None:
+    values = _example_values(EXAMPLES["session"])
+    session = VECTORS["session"]
+    assert values == {
+        "session_key": session["session_key"],
+        "session_id": str(session["session_id"]),
+    }
+    command = next(f for f in VECTORS["frames"] if f["name"] == "command")
+    assert command["decoded"]["session"] == session["session_id"]  # section 2's example
+
+
+def test_spec_deadline_example_follows_its_rounding_rule_and_the_vector() -> None:
+    v = {k: int(x) for k, x in _example_values(EXAMPLES["edge/deadline"]).items()}
+    steps = VECTORS["edge"]["steps"]
+    sync = next(s for s in steps if s["op"] == "receive" and s["event"]["kind"] == "TimeSynced")
+    assert (sync["edge_ns"], sync["event"]["offset_ns"], sync["event"]["rtt_ns"]) == (
+        v["sample_at_ns"], v["offset_ns"], v["rtt_ns"]
+    )  # fmt: skip
+    command = next(s for s in steps if s["op"] == "command" and s["edge_ns"] == v["edge_now_ns"])
+    assert command["validity_ns"] == v["validity_ns"]
+    written = ep.decode(bytes.fromhex(command["send"])).fields["deadline_us"]
+    age = v["edge_now_ns"] - v["sample_at_ns"]
+    margin = v["rtt_ns"] // 2 + -(-age * VECTORS["edge"]["drift_ppm"] // 10**6)
+    prose = (v["edge_now_ns"] + v["validity_ns"] + v["offset_ns"] - margin) // 1000
+    assert written == prose == v["deadline_us"]
+    # a plain float computation rounds the other way here: the rule is what the vector tests
+    naive = round((v["edge_now_ns"] + v["validity_ns"] + v["offset_ns"] - v["rtt_ns"] / 2
+                   - age * 50e-6) / 1000)  # fmt: skip
+    assert naive == written + 1
+
+
+@pytest.mark.parametrize("vec", VECTORS["cobs_decode_only"], ids=["ff-block-then-01"])
+def test_cobs_decoders_take_the_non_canonical_end(vec: dict) -> None:
+    raw, encoded = bytes.fromhex(vec["raw"]), bytes.fromhex(vec["encoded"])
+    assert serial_link.cobs_decode(encoded) == transport.cobs_decode(encoded) == raw
+    assert serial_link.cobs_encode(raw) != encoded  # canonical: no trailing 01
