@@ -67,6 +67,7 @@ class SentCommand:
     """
 
     seq: int
+    session: int  # seq counts in this session
     action: int
     deadline_us: int  # in the car's clock
     outcome: str = "pending"
@@ -228,18 +229,21 @@ class CarLink:
         True when the newest STATUS says not moving and either its ``done_seq`` reached the last
         command (or none was sent), or that command can no longer run: the car refused it, or it
         was never acknowledged and the STATUS was made after its deadline (a car never starts a
-        command past its deadline, and an accepted one shows as moving or done). An engaged
-        emergency stop also counts as finished: nothing will move.
+        command past its deadline, and an accepted one shows as moving or done). A STATUS of
+        another session than the command's says nothing of its ``done_seq`` (each session counts
+        on its own), so then only the deadline rule applies. An engaged emergency stop also
+        counts as finished: nothing will move.
         """
         st = self._cars.get(car_id)
         if st is None or st.status is None or st.status.moving:
             return False
         status, cmd = st.status, st.command
-        if cmd is None or status.done_seq >= cmd.seq or status.faults & ep.Fault.ESTOP:
+        if cmd is None or status.faults & ep.Fault.ESTOP or cmd.outcome == "refused":
             return True
-        if cmd.outcome == "refused":
+        if status.session == cmd.session and status.done_seq >= cmd.seq:
             return True
-        return cmd.outcome == "pending" and status.car_time_us > cmd.deadline_us
+        unconfirmed = cmd.outcome == "pending" or status.session != cmd.session
+        return unconfirmed and status.car_time_us > cmd.deadline_us
 
     def counters(self) -> dict[str, object]:
         """Everything counted: rejected frames by reason, events, sends, transport drops."""
@@ -349,7 +353,9 @@ class CarLink:
                 decoded = ep.decode(flight.frame)
                 r = flight.report
                 r.seq, r.car_deadline_us = decoded.seq, decoded.fields["deadline_us"]
-                self._cars[car_id].command = SentCommand(r.seq, r.action, r.car_deadline_us)
+                self._cars[car_id].command = SentCommand(
+                    r.seq, decoded.session, r.action, r.car_deadline_us
+                )
             await self._await_acks(report, cutoff)
         finally:
             self._flights.clear()
@@ -441,20 +447,18 @@ class CarLink:
         self.changed.set()
 
     def _forget(self, st: CarState, why: str) -> None:
-        """The car's session ended: what it reported and what was sent to it no longer apply.
-
-        Its clock sync survives a session renewed without a reboot (the car clock ran on).
-        """
-        st.status = st.command = st.sync_requested_ns = None
-        if why != "renewed":
-            st.sync_rtt_ns = None
+        """The car's session ended: what it reported and what was sent to it no longer apply."""
+        st.status = st.command = st.sync_requested_ns = st.sync_rtt_ns = None
         self._resolve(st.car_id, why)
 
     def _on_join(self, event: ep.Joined, st: CarState, now: int) -> None:
+        """A new session. After a reboot nothing of the old one holds; after a renewal (or a
+        new edge) the car ran on: a command in flight is still answered, in its own session."""
         self._counts["joins"] += 1
         if event.previous_session is not None:
             self._counts["reboots" if event.reboot else "renewals"] += 1
-        self._forget(st, "rebooted" if event.reboot else "renewed")
+        if event.reboot:
+            self._forget(st, "rebooted")
         st.marker, st.left = event.marker, None
         if st.car_id in self._stopped:
             self._send(st.car_id, self._proto.encode_estop(st.car_id))
@@ -464,7 +468,7 @@ class CarLink:
 
     def _on_ack(self, event: ep.Acked, st: CarState, now: int) -> None:
         cmd = st.command
-        if cmd is None or event.ref_seq != cmd.seq:
+        if cmd is None or (event.session, event.ref_seq) != (cmd.session, cmd.seq):
             return  # an estop's, a refused time request's, or an older command's
         accepted = event.result in _ACCEPTING
         if cmd.outcome == "pending":

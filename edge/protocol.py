@@ -346,6 +346,7 @@ class Acked:
     """The car's answer to one edge frame."""
 
     car_id: int
+    session: int  # the session of the ACK, and so of the frame it answers
     ref_seq: int
     result: AckResult
     action: int | None
@@ -356,9 +357,10 @@ class Acked:
 
 @dataclass(frozen=True, slots=True)
 class StatusReport:
-    """A car's heartbeat."""
+    """A car's heartbeat; ``done_seq`` counts in ``session``."""
 
     car_id: int
+    session: int
     row: int
     col: int
     battery_mv: int
@@ -418,7 +420,8 @@ class _Session:
     def fresh(self, seq: int) -> bool:
         """Anti-replay window (RFC 4303 style): a new seq, or an unseen one of the last 64."""
         if seq > self.rx_seq:
-            self.seen = ((self.seen << (seq - self.rx_seq)) | 1) & _WINDOW_MASK
+            jump = seq - self.rx_seq  # bounded: a shift by billions of bits takes seconds
+            self.seen = ((self.seen << jump) | 1) & _WINDOW_MASK if jump < REPLAY_WINDOW else 1
             self.rx_seq = seq
             return True
         back = self.rx_seq - seq
@@ -685,6 +688,7 @@ class EdgeProtocol:
             sent = session.sent_at.get(f["ref_seq"])
             return Acked(
                 car_id=d.car_id,
+                session=d.session,
                 ref_seq=f["ref_seq"],
                 result=AckResult(f["result"]),
                 action=None if f["action"] == _NO_ACTION else f["action"],
@@ -695,6 +699,7 @@ class EdgeProtocol:
         if d.type == MsgType.STATUS:
             return StatusReport(
                 car_id=d.car_id,
+                session=d.session,
                 row=f["row"],
                 col=f["col"],
                 battery_mv=f["battery_mv"],

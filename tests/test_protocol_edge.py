@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from udan.edge import protocol as ep
@@ -254,3 +256,15 @@ def test_can_mapping_round_trip_and_checks() -> None:
         ep.can_unpack(can_id, data[:-1] + b"\x01")
     with pytest.raises(ValueError):
         ep.can_pack(Car(car_id=200).join(10))
+
+
+def test_a_jump_in_sequence_numbers_costs_no_time(edge: ep.EdgeProtocol) -> None:
+    """A frame 2^32 - 10 ahead must not make the replay window shift by billions of bits."""
+    car = Car()
+    car.open(edge, 1_000)
+    car.seq = 2**32 - 11
+    started = time.perf_counter()
+    assert isinstance(edge.receive(car.status(1_000)), ep.StatusReport)
+    assert time.perf_counter() - started < 0.05  # it took seconds and gigabytes before
+    car.seq = 2**32 - 13
+    assert isinstance(edge.receive(car.status(1_000)), ep.StatusReport)  # inside the window
