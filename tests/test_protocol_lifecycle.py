@@ -5,7 +5,8 @@ the car back under command within a second on every transport: UDP (the cars in 
 ``udan-firmware-mock`` process), a serial line (pty pairs) and CAN FD (python-can's virtual bus).
 The previous process's count is reached by sending, in its session and under its session key
 (derived from the nonces its ACCEPT carried in the clear), one frame with that sequence number:
-what the car keeps of those frames is the highest seq, and that is what it ends up holding.
+what the car keeps of those frames is the highest seq, and that is what it ends up holding
+(``bench/protocol.py`` measures the same recovery and prints it).
 """
 
 from __future__ import annotations
@@ -18,18 +19,19 @@ import sys
 import time
 import tty
 import uuid
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
 from test_link import FAST, LoopFleet, MockProcess, WiredCar, all_finished, fleet, until
+from test_protocol_fuzz import bench
 
 from udan.edge import protocol as ep
 from udan.edge.link import CarLink
 from udan.edge.transport import Transport, free_udp_port, open_transport
-from udan.envs.rules import DOWN, UP, WAIT
+from udan.envs.rules import DOWN, UP
 from udan.firmware_mock import wire
 from udan.firmware_mock.can_car import CanCar
 from udan.firmware_mock.core import RENEW_AT, SEQ_MAX, CarCore, Telemetry
@@ -39,32 +41,6 @@ from udan.fleetfile import CarEntry, load_fleet
 PREVIOUS_RUNS = [10, 10**6, 2**32 - 10]
 RECOVERY_S = 1.0  # the design's target: edge restart -> every car back under command
 MOCK = ["-m", "udan.firmware_mock.cli"]
-
-
-def record_sends(transport: Transport) -> list[tuple[int, bytes]]:
-    """Every frame the edge sends through ``transport``, as (car id, frame)."""
-    sent: list[tuple[int, bytes]] = []
-    for name in ("send", "send_back"):
-        original = getattr(transport, name)
-
-        def recording(car_id: int, frame: bytes, original: Callable = original) -> None:
-            sent.append((car_id, frame))
-            original(car_id, frame)
-
-        setattr(transport, name, recording)
-    return sent
-
-
-def frame_at_seq(entry: CarEntry, sent: list[tuple[int, bytes]], seq: int) -> bytes:
-    """A TIME_REQUEST of the car's session with the edge that sent ``sent``, at ``seq``."""
-    accept = next(
-        ep.decode(f) for c, f in reversed(sent) if c == entry.car_id and f[1] == ep.MsgType.ACCEPT
-    )
-    session, key = ep.derive_session(
-        entry.key, bytes(accept.fields["car_nonce"]), bytes(accept.fields["edge_nonce"])
-    )
-    # the car booted seconds ago: timestamp 0 is inside its one-minute window
-    return ep.encode(ep.MsgType.TIME_REQUEST, entry.car_id, session, seq, 0, key, {"t1_ns": seq})
 
 
 class Rig:
@@ -196,31 +172,20 @@ async def rig(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterator[R
         await made.close()
 
 
-async def under_command(link: CarLink, cars: set[int], timeout: float = 5.0) -> None:
-    """Until one dispatch reaches every car on time."""
-    async with asyncio.timeout(timeout):
-        while True:
-            await until(link, lambda: link.ready_cars() == cars, timeout=timeout)
-            await until(link, all_finished(link, cars), timeout=timeout)
-            report = await link.dispatch(dict.fromkeys(cars, WAIT), time.monotonic_ns())
-            if report.on_time == len(cars):
-                return
-
-
 @pytest.mark.parametrize("previous_frames", PREVIOUS_RUNS, ids=["10", "1e6", "2^32-10"])
 async def test_a_restarted_edge_has_every_car_back_within_a_second(
     rig: Rig, previous_frames: int
 ) -> None:
     cars = {e.car_id for e in rig.entries}
     transport = rig.transport()
-    sent = record_sends(transport)
+    sent, _ = bench.tap(transport)
     previous = CarLink(rig.entries, transport)
     await previous.start()
     try:
-        await under_command(previous, cars)
+        await bench.under_command(previous, cars)
         before = await rig.accepted()
         for entry in rig.entries:  # what the previous process's frames left on each car
-            transport.send(entry.car_id, frame_at_seq(entry, sent, previous_frames))
+            transport.send(entry.car_id, bench.frame_at_seq(entry, sent, previous_frames))
         await asyncio.sleep(0.05)
         after = await rig.accepted()
         assert all(after[c] == before[c] + 1 for c in cars), (before, after)
@@ -231,7 +196,7 @@ async def test_a_restarted_edge_has_every_car_back_within_a_second(
     fresh = CarLink(rig.entries, rig.transport())
     await fresh.start()
     try:
-        await under_command(fresh, cars)
+        await bench.under_command(fresh, cars)
         recovery = time.monotonic() - started
         assert fresh.counters()["hellos"] >= len(cars)  # it asked the cars; they did not reboot
         assert fresh.counters()["reboots"] == 0
@@ -349,7 +314,7 @@ async def test_a_fresh_edge_fed_old_joins_first_still_gets_every_car() -> None:
         started = time.monotonic()
         for join in list(joins):  # the attacker is first on the new edge
             f.transport.car_send(join)
-        await under_command(fresh, set(f.cars))
+        await bench.under_command(fresh, set(f.cars))
         assert time.monotonic() - started <= RECOVERY_S
     finally:
         await f.close()
