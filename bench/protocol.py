@@ -30,7 +30,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from udan.edge import protocol as ep
@@ -268,17 +268,23 @@ async def under_command(link: CarLink, cars: set[int], timeout_s: float = 10.0) 
                     await link.changed.wait()
 
 
+def fleet_file(folder: Path, car_ids: Sequence[int]) -> Path:
+    """A fleet.toml in ``folder``: car ``c`` has marker ``c``, any free port, key ``c`` x 32."""
+    path = folder / "fleet.toml"
+    path.write_text(
+        "".join(
+            f'[[car]]\nid = {c}\nmarker = {c}\nport = 0\nkey = "{(bytes([c]) * 32).hex()}"\n'
+            for c in car_ids
+        )
+    )
+    return path
+
+
 class _MockFleet:
     """Two mock cars in their own ``udan-firmware-mock`` process, announcing to ``listen``."""
 
     def __init__(self, folder: Path) -> None:
-        path = folder / "fleet.toml"
-        path.write_text(
-            "".join(
-                f'[[car]]\nid = {c}\nmarker = {c}\nport = 0\nkey = "{(bytes([c]) * 32).hex()}"\n'
-                for c in (1, 2)
-            )
-        )
+        path = fleet_file(folder, (1, 2))
         self.entries = load_fleet(path)
         self.listen = f"127.0.0.1:{free_udp_port()}"
         cmd = [sys.executable, "-m", "udan.firmware_mock.cli", "--keys", str(path)]
