@@ -460,6 +460,8 @@ class CarLink:
         if event.reboot:
             self._forget(st, "rebooted")
         st.marker, st.left = event.marker, None
+        if event.status is not None:
+            st.status = event.status
         if st.car_id in self._stopped:
             self._send(st.car_id, self._proto.encode_estop(st.car_id))
             self._counts["estops"] += 1
@@ -488,14 +490,21 @@ class CarLink:
             self._tick()
 
     def _tick(self) -> None:
-        """Re-sync clocks that are due (or whose request went unanswered); notice silences."""
+        """Re-sync clocks that are due (or whose request went unanswered); notice silences.
+
+        A best sample whose round trip is as long as the validity leaves no time for a command
+        (the deadline is pulled in by half of it, section 7): such a car is synced again every
+        tick until a better sample comes, not after ``sync_period_s``.
+        """
         self._flush()  # a renewal asked for while sending
         now = self._clock()
         for car_id in self._proto.joined_cars():
+            st = self._cars[car_id]
             age = self._proto.sync_age_ns(car_id)
-            asked = self._cars[car_id].sync_requested_ns
-            due = age is None or age >= self._sync_period_ns
-            if due and (asked is None or now - asked >= SYNC_RETRY_NS):
+            poor = st.sync_rtt_ns is not None and st.sync_rtt_ns >= self.validity_ns
+            due = age is None or age >= self._sync_period_ns or poor
+            retry = TICK_S * 1e9 if poor else SYNC_RETRY_NS
+            if due and (st.sync_requested_ns is None or now - st.sync_requested_ns >= retry):
                 self._request_sync(car_id, now)
         ready = frozenset(self.ready_cars())
         if ready != self._ready_seen:

@@ -328,20 +328,6 @@ class Joining:
 
 
 @dataclass(frozen=True, slots=True)
-class Joined:
-    """A new session is confirmed. ``reboot``: the car restarted, its clock must be synced again.
-
-    ``previous_session`` is the session it replaces at this edge (None for a car new to it).
-    """
-
-    car_id: int
-    marker: int
-    session: int
-    previous_session: int | None
-    reboot: bool
-
-
-@dataclass(frozen=True, slots=True)
 class Acked:
     """The car's answer to one edge frame."""
 
@@ -368,6 +354,22 @@ class StatusReport:
     moving: bool
     done_seq: int
     car_time_us: int
+
+
+@dataclass(frozen=True, slots=True)
+class Joined:
+    """A new session is confirmed. ``reboot``: the car restarted, its clock must be synced again.
+
+    ``previous_session`` is the session it replaces at this edge (None for a car new to it);
+    ``status`` is the frame that confirmed it, when that was a STATUS (as a car sends first).
+    """
+
+    car_id: int
+    marker: int
+    session: int
+    previous_session: int | None
+    reboot: bool
+    status: StatusReport | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -504,6 +506,21 @@ class _Peer:
     def offset_ns(self) -> int:
         best = self.best()
         return self.provisional_offset_ns if best is None else best.offset_ns
+
+
+def _status_report(d: Decoded) -> StatusReport:
+    f = d.fields
+    return StatusReport(
+        car_id=d.car_id,
+        session=d.session,
+        row=f["row"],
+        col=f["col"],
+        battery_mv=f["battery_mv"],
+        faults=Fault(f["faults"]),
+        moving=bool(f["state"]),
+        done_seq=f["done_seq"],
+        car_time_us=d.timestamp_us,
+    )
 
 
 def _remember(table: OrderedDict, k: object, v: object, limit: int) -> None:
@@ -678,7 +695,8 @@ class EdgeProtocol:
         if not session.fresh(d.seq):
             return Rejected("replay", d.car_id)
         if offer is not None:
-            return self._confirm(d.car_id, peer, offer, now)
+            status = _status_report(d) if d.type == MsgType.STATUS else None
+            return self._confirm(d.car_id, peer, offer, now, status)
         if session is peer.current:
             peer.heard_ns = now
         if abs(d.timestamp_us - (now + peer.offset_ns()) // 1000) > TIME_WINDOW_US:
@@ -697,17 +715,7 @@ class EdgeProtocol:
                 round_trip_ns=None if sent is None else now - sent,
             )
         if d.type == MsgType.STATUS:
-            return StatusReport(
-                car_id=d.car_id,
-                session=d.session,
-                row=f["row"],
-                col=f["col"],
-                battery_mv=f["battery_mv"],
-                faults=Fault(f["faults"]),
-                moving=bool(f["state"]),
-                done_seq=f["done_seq"],
-                car_time_us=d.timestamp_us,
-            )
+            return _status_report(d)
         if d.type == MsgType.LEAVE:
             peer.current = peer.previous = None
             peer.heard_ns = None
@@ -745,7 +753,9 @@ class EdgeProtocol:
         self._outbox.append((d.car_id, offer.accept))
         return Joining(d.car_id, f["marker"], cause)
 
-    def _confirm(self, car_id: int, peer: _Peer, offer: _Offer, now: int) -> Joined:
+    def _confirm(
+        self, car_id: int, peer: _Peer, offer: _Offer, now: int, status: StatusReport | None
+    ) -> Joined:
         """The car's first frame in an offered session: it becomes the current one."""
         previous = peer.current
         reboot = offer.cause == JoinCause.BOOT
@@ -766,6 +776,7 @@ class EdgeProtocol:
             offer.session.id,
             None if previous is None else previous.id,
             reboot=reboot and previous is not None,
+            status=status,
         )
 
     def _on_time_response(self, d: Decoded, peer: _Peer, now: int) -> Event:

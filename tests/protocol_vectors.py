@@ -47,6 +47,8 @@ def event_dict(event: ep.Event) -> dict[str, Any]:
     out: dict[str, Any] = {"kind": type(event).__name__}
     for f in dataclasses.fields(event):
         value = getattr(event, f.name)
+        if dataclasses.is_dataclass(value):
+            value = event_dict(value)  # type: ignore[arg-type]
         out[f.name] = int(value) if isinstance(value, enum.Enum) else value
     return out
 

@@ -373,6 +373,24 @@ async def test_a_restarted_edge_gets_running_cars_back(loop_fleet: LoopFleet) ->
         await fresh.close()
 
 
+async def test_a_clock_sync_too_poor_for_any_command_is_repeated_at_once(
+    clock: FakeClock,
+) -> None:
+    transport = LoopTransport(fleet(1), delay_s=0.006)  # 12 ms round trips: past the validity
+    f = LoopFleet(1, clock, transport)
+    await f.start()
+    try:
+        link = f.link
+        assert link.state(1).sync_rtt_ns >= link.validity_ns
+        asked = link.counters()["time_requests"]
+        transport.delay_s = 0.0
+        await until(link, lambda: link.state(1).sync_rtt_ns < link.validity_ns, timeout=0.5)
+        assert link.counters()["time_requests"] > asked  # long before the 1 s sync period
+        assert (await link.dispatch({1: UP}, clock())).on_time == 1
+    finally:
+        await f.close()
+
+
 async def test_invalid_action_and_concurrent_dispatch_raise(
     loop_fleet: LoopFleet, clock: FakeClock
 ) -> None:

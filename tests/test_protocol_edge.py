@@ -100,7 +100,9 @@ def test_join_then_commands_need_a_clock_sync(edge: ep.EdgeProtocol, clock: Fake
     ((_, accept),) = edge.datagrams_to_send()
     car.take(accept)
     event = edge.receive(car.status(1_000))
-    assert event == ep.Joined(1, 5, car.session, None, reboot=False)
+    assert isinstance(event, ep.Joined) and event.status is not None  # the confirming STATUS
+    assert event == ep.Joined(1, 5, car.session, None, reboot=False, status=event.status)
+    assert (event.status.session, event.status.battery_mv) == (car.session, 1)
     assert edge.joined(1) and not edge.synced(1)
     with pytest.raises(ep.NotReady):
         edge.encode_command(1, ep.Action.UP)
