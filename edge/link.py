@@ -493,8 +493,8 @@ class CarLink:
         """Re-sync clocks that are due (or whose request went unanswered); notice silences.
 
         A best sample whose round trip is as long as the validity leaves no time for a command
-        (the deadline is pulled in by half of it, section 7): such a car is synced again every
-        tick until a better sample comes, not after ``sync_period_s``.
+        (the deadline is pulled in by half of it, section 7): such a car is synced again as soon
+        as the retry pace allows, until a better sample comes, not after ``sync_period_s``.
         """
         self._flush()  # a renewal asked for while sending
         now = self._clock()
@@ -503,8 +503,8 @@ class CarLink:
             age = self._proto.sync_age_ns(car_id)
             poor = st.sync_rtt_ns is not None and st.sync_rtt_ns >= self.validity_ns
             due = age is None or age >= self._sync_period_ns or poor
-            retry = TICK_S * 1e9 if poor else SYNC_RETRY_NS
-            if due and (st.sync_requested_ns is None or now - st.sync_requested_ns >= retry):
+            asked = st.sync_requested_ns
+            if due and (asked is None or now - asked >= SYNC_RETRY_NS):
                 self._request_sync(car_id, now)
         ready = frozenset(self.ready_cars())
         if ready != self._ready_seen:
