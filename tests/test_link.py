@@ -356,6 +356,22 @@ async def test_estop_reaches_every_car_and_releases(
     assert (await link.dispatch({1: UP}, clock())).on_time == 1
 
 
+async def test_a_stop_holds_across_a_reboot_until_released(loop_fleet: LoopFleet) -> None:
+    link, car = loop_fleet.link, loop_fleet.cars[1].firmware
+    link.estop_all()
+    await asyncio.sleep(0.03)
+    car.reboot()  # the latch is RAM: the rebooted car has forgotten it
+    assert not car.core.estopped
+    await until(link, lambda: link.counters()["reboots"] == 1 and 1 in link.ready_cars())
+    assert car.core.estopped  # the edge sent the stop again in the new session
+    link.estop_all(engage=False)
+    await asyncio.sleep(0.03)
+    assert not car.core.estopped
+    car.reboot()
+    await until(link, lambda: link.counters()["reboots"] == 2 and 1 in link.ready_cars())
+    assert not car.core.estopped
+
+
 async def test_a_restarted_edge_gets_running_cars_back(loop_fleet: LoopFleet) -> None:
     await loop_fleet.link.close()  # the edge goes away; the cars keep their session
     sessions = {c: car.firmware.core.session for c, car in loop_fleet.cars.items()}
