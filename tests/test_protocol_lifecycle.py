@@ -235,13 +235,18 @@ async def drive(f: LoopFleet, link: CarLink, steps: int) -> None:
     """``steps`` steps up and down, each dispatched again until every car took it in time (a
     loaded machine can make a car miss one now and then; here it must not miss for long)."""
     cars = set(f.cars)
+
+    def ready() -> bool:
+        return link.ready_cars() == cars and all_finished(link, cars)()
+
     async with asyncio.timeout(5 + steps):
         for i in range(steps):
             on_time = 0
             while on_time < len(cars):
-                await until(link, all_finished(link, cars))
+                await until(link, ready)
                 actions = dict.fromkeys(cars, (UP, DOWN)[i % 2])
                 on_time = (await link.dispatch(actions, time.monotonic_ns())).on_time
+                await asyncio.sleep(0)  # a dispatch that sent nothing awaited nothing
     await until(link, all_finished(link, cars))
 
 
