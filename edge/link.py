@@ -15,13 +15,18 @@ ACK (a command sent in the last round trip before the deadline, or an edge held 
 
 Keepalive is the runtime's: it sends a command (``wait`` included) every step. If steps pause
 past the cars' watchdog (300 ms) they stop and report WATCHDOG; the next command resumes them.
+
+Sessions need no memory of an earlier edge process: a car still in a session this edge never
+opened is sent HELLO and opens a new one (section 6), so a restarted edge has its cars back after
+a few round trips, however many frames the old process had sent. A car the edge has stopped stays
+stopped across its reboots: the stop is sent again in every new session until released.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import secrets
+import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
@@ -46,10 +51,12 @@ COUNTERS = (
     "commands",
     "retransmits",
     "estops",
-    "probes",
+    "hellos",
+    "renewals",
     "send_errors",
 )
 _ACCEPTING = (ep.AckResult.ACCEPTED, ep.AckResult.DUPLICATE)
+log = logging.getLogger(__name__)
 
 
 @dataclass(slots=True)
@@ -60,6 +67,7 @@ class SentCommand:
     """
 
     seq: int
+    session: int  # seq counts in this session
     action: int
     deadline_us: int  # in the car's clock
     outcome: str = "pending"
@@ -164,8 +172,7 @@ class CarLink:
         self.validity_ns = validity_ns
         self.changed = asyncio.Event()
         self._clock = clock
-        self._keys = {c.car_id: c.key for c in cars}
-        self._proto = ep.EdgeProtocol(self._keys, clock=clock)
+        self._proto = ep.EdgeProtocol({c.car_id: c.key for c in cars}, clock=clock)
         self._cars = {c.car_id: CarState(c.car_id, c.marker) for c in cars}
         self._sync_period_ns = int(sync_period_s * 1e9)
         self._silence_ns = int(silence_s * 1e9)
@@ -178,6 +185,8 @@ class CarLink:
         self._dispatching = False
         self._resolved = asyncio.Event()
         self._ready_seen: frozenset[int] = frozenset()
+        self._stopped: set[int] = set()  # emergency stop engaged and not released
+        self._logged: set[str] = set()
         self._task: asyncio.Task[None] | None = None
         self._open = False
 
@@ -220,18 +229,21 @@ class CarLink:
         True when the newest STATUS says not moving and either its ``done_seq`` reached the last
         command (or none was sent), or that command can no longer run: the car refused it, or it
         was never acknowledged and the STATUS was made after its deadline (a car never starts a
-        command past its deadline, and an accepted one shows as moving or done). An engaged
-        emergency stop also counts as finished: nothing will move.
+        command past its deadline, and an accepted one shows as moving or done). A STATUS of
+        another session than the command's says nothing of its ``done_seq`` (each session counts
+        on its own), so then only the deadline rule applies. An engaged emergency stop also
+        counts as finished: nothing will move.
         """
         st = self._cars.get(car_id)
         if st is None or st.status is None or st.status.moving:
             return False
         status, cmd = st.status, st.command
-        if cmd is None or status.done_seq >= cmd.seq or status.faults & ep.Fault.ESTOP:
+        if cmd is None or status.faults & ep.Fault.ESTOP or cmd.outcome == "refused":
             return True
-        if cmd.outcome == "refused":
+        if status.session == cmd.session and status.done_seq >= cmd.seq:
             return True
-        return cmd.outcome == "pending" and status.car_time_us > cmd.deadline_us
+        unconfirmed = cmd.outcome == "pending" or status.session != cmd.session
+        return unconfirmed and status.car_time_us > cmd.deadline_us
 
     def counters(self) -> dict[str, object]:
         """Everything counted: rejected frames by reason, events, sends, transport drops."""
@@ -242,9 +254,12 @@ class CarLink:
         }
 
     # --- sending ---
-    def _send(self, car_id: int, frame: bytes) -> bool:
+    def _send(self, car_id: int, frame: bytes, *, back: bool = False) -> bool:
         try:
-            self.transport.send(car_id, frame)
+            if back:
+                self.transport.send_back(car_id, frame)
+            else:
+                self.transport.send(car_id, frame)
         except (TransportError, OSError):
             self._counts["send_errors"] += 1
             return False
@@ -257,18 +272,14 @@ class CarLink:
         self._counts["time_requests"] += 1
         self._send(car_id, self._proto.encode_time_request(car_id))
 
-    def _probe(self, car_id: int) -> None:
-        """Make a car that is joined to someone else's session (an edge restart) JOIN again.
+    def _flush(self, *, back: bool = False) -> None:
+        """Send what the protocol queued of its own accord (ACCEPT, HELLO).
 
-        A frame authenticated with the car's key but of another session is answered with a JOIN
-        carrying the car's current session (section 6), which the edge then accepts as new.
+        ``back``: they answer the frame being delivered, and go where it came from.
         """
-        session = secrets.randbelow(0xFFFF_FFFF) + 1
-        frame = ep.encode(
-            ep.MsgType.TIME_REQUEST, car_id, session, 1, 0, self._keys[car_id], {"t1_ns": 0}
-        )
-        self._counts["probes"] += 1
-        self._send(car_id, frame)
+        for car_id, frame in self._proto.datagrams_to_send():
+            self._counts["hellos"] += frame[1] == ep.MsgType.HELLO
+            self._send(car_id, frame, back=back)
 
     def estop_all(self, engage: bool = True) -> int:
         """Emergency stop (or release) every joined car now; returns how many it was sent to.
@@ -277,8 +288,13 @@ class CarLink:
         ``loop.add_signal_handler`` (a plain ``signal.signal`` handler could interrupt the
         protocol core mid-frame). When an event loop is running the round is repeated twice a
         few ms later with fresh frames (engaging twice is harmless, a lost frame is not). A
-        release needs a synchronised clock, so cars without one are skipped.
+        release needs a synchronised clock, so cars without one are skipped. An engaged stop is
+        remembered: a car that joins again (it rebooted, and its latch with it) is sent it.
         """
+        if engage:
+            self._stopped.update(self._cars)
+        else:
+            self._stopped.clear()
         sent = self._estop_round(engage)
         with contextlib.suppress(RuntimeError):  # no running loop: one round is all we can do
             loop = asyncio.get_running_loop()
@@ -337,7 +353,9 @@ class CarLink:
                 decoded = ep.decode(flight.frame)
                 r = flight.report
                 r.seq, r.car_deadline_us = decoded.seq, decoded.fields["deadline_us"]
-                self._cars[car_id].command = SentCommand(r.seq, r.action, r.car_deadline_us)
+                self._cars[car_id].command = SentCommand(
+                    r.seq, decoded.session, r.action, r.car_deadline_us
+                )
             await self._await_acks(report, cutoff)
         finally:
             self._flights.clear()
@@ -399,9 +417,13 @@ class CarLink:
         event = self._proto.receive(data)
         if isinstance(event, ep.Rejected):
             self._rejected[event.reason] += 1
-            if event.reason == "not_joined" and event.car_id is not None:
-                self.transport.confirm_source(event.car_id)
-                self._probe(event.car_id)
+            if event.detail and event.detail not in self._logged:
+                self._logged.add(event.detail)
+                log.warning("%s", event.detail)
+            self._flush(back=True)
+            return
+        if isinstance(event, ep.Joining):  # maybe a replay: it moves nothing, not even the route
+            self._flush(back=True)
             return
         now = self._clock()
         st = self._cars[event.car_id]
@@ -430,16 +452,25 @@ class CarLink:
         self._resolve(st.car_id, why)
 
     def _on_join(self, event: ep.Joined, st: CarState, now: int) -> None:
-        if not event.repeat:
-            self._counts["joins"] += 1
-            self._counts["reboots"] += event.reboot
+        """A new session. After a reboot nothing of the old one holds; after a renewal (or a
+        new edge) the car ran on: a command in flight is still answered, in its own session."""
+        self._counts["joins"] += 1
+        if event.previous_session is not None:
+            self._counts["reboots" if event.reboot else "renewals"] += 1
+        if event.reboot:
             self._forget(st, "rebooted")
-            st.marker, st.left = event.marker, None
-        self._request_sync(st.car_id, now)
+        st.marker, st.left = event.marker, None
+        if event.status is not None:
+            st.status = event.status
+        if st.car_id in self._stopped:
+            self._send(st.car_id, self._proto.encode_estop(st.car_id))
+            self._counts["estops"] += 1
+        if not self._proto.synced(st.car_id):
+            self._request_sync(st.car_id, now)
 
     def _on_ack(self, event: ep.Acked, st: CarState, now: int) -> None:
         cmd = st.command
-        if cmd is None or event.ref_seq != cmd.seq:
+        if cmd is None or (event.session, event.ref_seq) != (cmd.session, cmd.seq):
             return  # an estop's, a refused time request's, or an older command's
         accepted = event.result in _ACCEPTING
         if cmd.outcome == "pending":
@@ -459,12 +490,20 @@ class CarLink:
             self._tick()
 
     def _tick(self) -> None:
-        """Re-sync clocks that are due (or whose request went unanswered); notice silences."""
+        """Re-sync clocks that are due (or whose request went unanswered); notice silences.
+
+        A best sample whose round trip is as long as the validity leaves no time for a command
+        (the deadline is pulled in by half of it, section 7): such a car is synced again as soon
+        as the retry pace allows, until a better sample comes, not after ``sync_period_s``.
+        """
+        self._flush()  # a renewal asked for while sending
         now = self._clock()
         for car_id in self._proto.joined_cars():
+            st = self._cars[car_id]
             age = self._proto.sync_age_ns(car_id)
-            asked = self._cars[car_id].sync_requested_ns
-            due = age is None or age >= self._sync_period_ns
+            poor = st.sync_rtt_ns is not None and st.sync_rtt_ns >= self.validity_ns
+            due = age is None or age >= self._sync_period_ns or poor
+            asked = st.sync_requested_ns
             if due and (asked is None or now - asked >= SYNC_RETRY_NS):
                 self._request_sync(car_id, now)
         ready = frozenset(self.ready_cars())

@@ -62,6 +62,15 @@ class Transport:
         frame (section 4); the others have fixed wiring and ignore it.
         """
 
+    def send_back(self, car_id: int, frame: bytes) -> None:
+        """Answer the frame being delivered (called inside ``on_frame``) where it came from.
+
+        Unlike ``confirm_source`` this does not make that the car's address: the frame being
+        answered may be a replayed one (a JOIN anyone could have recorded). Transports with fixed
+        wiring send as ``send`` does.
+        """
+        self.send(car_id, frame)
+
     def close(self) -> None:
         """Stop receiving and release the link."""
         self._on_frame = None
@@ -170,6 +179,13 @@ class UdpTransport(Transport):
         """Answer the car where its authenticated frame came from."""
         if self._source is not None:
             self._routes[car_id] = self._source
+
+    def send_back(self, car_id: int, frame: bytes) -> None:
+        """One datagram to the source of the datagram being delivered."""
+        if self._source is None or self._endpoint is None or self._endpoint.is_closing():
+            self.send(car_id, frame)
+        else:
+            self._endpoint.sendto(frame, self._source)
 
     def send(self, car_id: int, frame: bytes) -> None:
         """One datagram to the car's address (the OS sends it before this returns)."""

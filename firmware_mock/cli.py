@@ -85,7 +85,9 @@ def _parser() -> argparse.ArgumentParser:
     ):
         p.add_argument(flag, type=_positive_ms, default=default * 1000, help=what)
     p.add_argument("--control-port", type=_port, help="loopback JSON control port (0: any)")
-    p.add_argument("--seed", type=int, help="seed for sessions and fault draws")
+    p.add_argument(
+        "--seed", type=int, help="seed for the fault draws (session nonces are always fresh)"
+    )
     return p
 
 

@@ -4,11 +4,15 @@ It owns what the sans-I/O core cannot: the car clock (microseconds since boot), 
 (join announcements until the edge answers, status heartbeats, the watchdog), the motors, the
 injected faults, and reboots. The UDP ESP8266 mock and the CAN motor controller both run it; the
 transport hands it datagrams with ``receive`` and gives it a ``transmit`` to send with.
+
+``seed`` drives the injected link faults only; session nonces come from ``secrets`` in the core,
+so two runs with one seed never share a session.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import random
 import time
 from collections.abc import Callable, Mapping
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock import wire
 from udan.firmware_mock.core import WATCHDOG_US, CarCore
 from udan.firmware_mock.faults import Faults, LossyLink
 from udan.firmware_mock.fleet import CarSpec
@@ -37,6 +42,7 @@ class CarTiming:
 
 
 DEFAULT_TIMING = CarTiming()
+log = logging.getLogger(__name__)
 
 
 class CarFirmware:
@@ -68,6 +74,7 @@ class CarFirmware:
         self._boot_ns = time.monotonic_ns()
         self._dead_at_ns: int | None = None
         self._timers: dict[str, asyncio.TimerHandle] = {}
+        self._versions_logged: set[int] = set()
 
     @classmethod
     def for_car(
@@ -114,8 +121,7 @@ class CarFirmware:
         self._cancel("watchdog")
         self.edge = self.configured_edge
         self.motors.stop(sl.STOP_BOOT)
-        join = self.core.boot(self._rng.randrange(1, 1 << 32), self.now_us())
-        self._send(join)
+        self._send(self.core.boot(self.now_us()))
         self._schedule("join", self.join_period_s, self._announce)
 
     def reboot(self) -> None:
@@ -137,17 +143,23 @@ class CarFirmware:
             at = self.faults.dead_at_s
             self._dead_at_ns = None if at is None else time.monotonic_ns() + int(at * 1e9)
 
-    def _send(self, frame: bytes) -> None:
-        if self.edge is not None and not self.dead():
+    def _send(self, frame: bytes | None) -> None:
+        if frame is not None and self.edge is not None and not self.dead():
             self.outbound.send(frame, self.edge)
 
     def _announce(self) -> None:
-        if not self.core.joined:
-            self._send(self.core.join(self.now_us()))
-            self._schedule("join", self.join_period_s, self._announce)
+        """JOIN every ``join_period_s`` while the car has no session."""
+        if self.core.joined:
+            self._timers.pop("join", None)
+            return
+        self._send(self.core.join(self.now_us()))
+        self._schedule("join", self.join_period_s, self._announce)
 
     def _heartbeat(self) -> None:
         self.send_status()
+        self._send(self.core.renewal(self.now_us()))
+        if not self.core.joined and "join" not in self._timers:  # its counter ran out
+            self._announce()
         self._schedule("status", self.status_period_s, self._heartbeat)
 
     def send_status(self) -> None:
@@ -175,10 +187,20 @@ class CarFirmware:
             self.dead_dropped += 1
             return
         out = self.core.handle(data, self.now_us())
-        if out.verdict == "accepted":
+        if out.verdict in ("accepted", "joined"):
             self.edge = addr
+        elif out.verdict == "wrong_version" and data[0] not in self._versions_logged:
+            self._versions_logged.add(data[0])
+            log.warning(
+                "car %d: a protocol v%d frame refused, this firmware speaks v%d",
+                self.core.car_id,
+                data[0],
+                wire.VERSION,
+            )
         for reply in out.replies:  # before the motors report, so frames leave in seq order
             self.outbound.send(reply, addr)
+        if out.verdict == "joined":
+            self.send_status()  # the first frame of the new session confirms it to the edge
         if out.halt:
             self.motors.stop(sl.STOP_ESTOP)
         if out.motor is not None:
@@ -189,8 +211,9 @@ class CarFirmware:
 
     def close(self) -> None:
         """Shut down: say LEAVE to the edge (if joined and alive), stop the motors and timers."""
-        if self.core.joined and self.edge is not None and not self.dead():
-            self.outbound.deliver(self.core.leave(self.now_us(), 0), self.edge)
+        leave = self.core.leave(self.now_us(), 0)
+        if leave is not None and self.edge is not None and not self.dead():
+            self.outbound.deliver(leave, self.edge)
         self.motors.stop(sl.STOP_BOOT)
         self.closed = True
         for name in list(self._timers):

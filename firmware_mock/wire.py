@@ -13,8 +13,9 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
-VERSION = 1
+VERSION = 2
 KEY_LEN = 32
+NONCE_LEN = 16
 TAG_LEN = 6
 
 _HEADER = struct.Struct(">BBBBHII")  # version, type, payload length, flags, car, session, seq
@@ -25,13 +26,15 @@ LINK_EDGE_TO_CAR = 0
 LINK_CAR_TO_EDGE = 1
 
 # Message types; the high bit says the direction (set: car -> edge).
-COMMAND, ESTOP, TIME_REQ = 0x01, 0x02, 0x03
+COMMAND, ESTOP, TIME_REQ, HELLO, ACCEPT = 0x01, 0x02, 0x03, 0x04, 0x05
 ACK, STATUS, JOIN, LEAVE, TIME_RESP = 0x81, 0x82, 0x83, 0x84, 0x85
 
 TYPE_NAMES = {
     COMMAND: "command",
     ESTOP: "estop",
     TIME_REQ: "time_request",
+    HELLO: "hello",
+    ACCEPT: "accept",
     ACK: "ack",
     STATUS: "status",
     JOIN: "join",
@@ -44,9 +47,14 @@ _PAYLOADS: dict[int, tuple[struct.Struct, tuple[str, ...]]] = {
     COMMAND: (struct.Struct(">BQ"), ("action", "deadline_us")),
     ESTOP: (struct.Struct(">BQ"), ("engage", "deadline_us")),
     TIME_REQ: (struct.Struct(">Q"), ("t1_ns",)),
+    HELLO: (struct.Struct(">B"), ("reason",)),
+    ACCEPT: (struct.Struct(">16s16sB"), ("car_nonce", "edge_nonce", "version")),
     ACK: (struct.Struct(">IBBQ"), ("ref_seq", "result", "action", "rx_us")),
     STATUS: (struct.Struct(">hhHHBI"), ("row", "col", "battery_mv", "faults", "state", "done_seq")),
-    JOIN: (struct.Struct(">HB"), ("marker", "cause")),
+    JOIN: (
+        struct.Struct(">HBBB16s"),
+        ("marker", "cause", "min_version", "max_version", "car_nonce"),
+    ),
     LEAVE: (struct.Struct(">B"), ("reason",)),
     TIME_RESP: (struct.Struct(">QQQ"), ("t1_ns", "t2_us", "t3_us")),
 }
@@ -58,8 +66,11 @@ NO_ACTION = 0xFF  # ack of a frame that is not a command
 RESULTS = ("accepted", "duplicate", "replay", "expired", "bad_time", "estopped")
 # Status fault flags.
 FAULT_WATCHDOG, FAULT_ESTOP, FAULT_STALL, FAULT_LOW_BATTERY = 1, 2, 4, 8
-# Join causes and leave reasons.
-JOIN_BOOT, JOIN_WRONG_SESSION = 0, 1
+# Session-less frames (session 0, seq 0, tagged with the car's own key).
+HANDSHAKE = (HELLO, ACCEPT, JOIN)
+# Join causes, hello reasons and leave reasons.
+JOIN_BOOT, JOIN_HELLO, JOIN_RENEW = 0, 1, 2
+HELLO_UNKNOWN_SESSION, HELLO_RENEW = 0, 1
 LEAVE_REASONS = ("shutdown", "low_battery", "fault")
 
 _MAX_U48 = (1 << 48) - 1
@@ -84,7 +95,7 @@ class Frame:
     link_id: int
     timestamp_us: int
     tag: bytes
-    payload: dict[str, int]
+    payload: dict[str, Any]
     signed: bytes  # every byte the tag covers
 
     def describe(self) -> dict[str, Any]:
@@ -97,11 +108,11 @@ class Frame:
             "link_id": self.link_id,
             "timestamp_us": self.timestamp_us,
             "tag": self.tag.hex(),
-            "payload": dict(self.payload),
+            "payload": {k: v.hex() if isinstance(v, bytes) else v for k, v in self.payload.items()},
         }
 
 
-def _check_fields(kind: int, p: dict[str, int]) -> None:
+def _check_fields(kind: int, p: dict[str, Any]) -> None:
     if kind == COMMAND and p["action"] > STOP_ACTION:
         raise Malformed("malformed", f"unknown action {p['action']}")
     if kind == ESTOP and p["engage"] > 1:
@@ -112,8 +123,10 @@ def _check_fields(kind: int, p: dict[str, int]) -> None:
         raise Malformed("malformed", "ack result or action out of range")
     if kind == STATUS and (p["state"] > 1 or p["faults"] >= 16):
         raise Malformed("malformed", "status state or fault flags out of range")
-    if kind == JOIN and p["cause"] > JOIN_WRONG_SESSION:
-        raise Malformed("malformed", f"unknown join cause {p['cause']}")
+    if kind == JOIN and (p["cause"] > JOIN_RENEW or p["min_version"] > p["max_version"]):
+        raise Malformed("malformed", "join cause or version range out of range")
+    if kind == HELLO and p["reason"] > HELLO_RENEW:
+        raise Malformed("malformed", f"unknown hello reason {p['reason']}")
     if kind == LEAVE and p["reason"] >= len(LEAVE_REASONS):
         raise Malformed("malformed", f"unknown leave reason {p['reason']}")
 
@@ -123,7 +136,7 @@ def parse(data: bytes) -> Frame:
     if not data:
         raise Malformed("malformed", "empty frame")
     if data[0] != VERSION:
-        raise Malformed("wrong_version", f"version {data[0]}, this firmware speaks {VERSION}")
+        raise Malformed("wrong_version", f"protocol v{data[0]}, this firmware speaks v{VERSION}")
     if len(data) < HEADER_LEN + TRAILER_LEN:
         raise Malformed("malformed", f"truncated: {len(data)} bytes")
     _, kind, plen, flags, car_id, session, seq = _HEADER.unpack_from(data)
@@ -133,8 +146,13 @@ def parse(data: bytes) -> Frame:
     fmt, names = layout
     if plen != fmt.size or len(data) != HEADER_LEN + plen + TRAILER_LEN:
         raise Malformed("malformed", "length does not match the type")
-    if flags != 0 or car_id in (0, 0xFFFF) or session == 0 or seq == 0:
+    if flags != 0 or car_id in (0, 0xFFFF):
         raise Malformed("malformed", "reserved value in the header")
+    if kind in HANDSHAKE:
+        if session != 0 or seq != 0:
+            raise Malformed("malformed", "a handshake frame carries session 0 and seq 0")
+    elif session == 0 or seq == 0:
+        raise Malformed("malformed", "session and seq must be nonzero")
     end = HEADER_LEN + plen
     link_id = data[end]
     if link_id != (LINK_CAR_TO_EDGE if kind & 0x80 else LINK_EDGE_TO_CAR):
@@ -164,10 +182,20 @@ def authentic(frame: Frame, key: bytes) -> bool:
     return hmac.compare_digest(tag_for(key, frame.signed), frame.tag)
 
 
+def session_for(key: bytes, car_nonce: bytes, edge_nonce: bytes) -> tuple[int, bytes]:
+    """The session two nonces open: its id (nonzero) and the key its frames are tagged with."""
+    session_key = hmac.digest(key, b"udan/2 session" + car_nonce + edge_nonce, hashlib.sha256)
+    session_id = int.from_bytes(hmac.digest(session_key, b"udan/2 id", hashlib.sha256)[:4], "big")
+    return session_id if session_id else 1, session_key
+
+
 def encode(
-    kind: int, car_id: int, session: int, seq: int, timestamp_us: int, key: bytes, **fields: int
+    kind: int, car_id: int, session: int, seq: int, timestamp_us: int, key: bytes, **fields: Any
 ) -> bytes:
-    """Build and sign one frame; ``fields`` are the payload fields of ``kind`` by name."""
+    """Build and sign one frame; ``fields`` are the payload fields of ``kind`` by name.
+
+    Handshake frames are signed with the car's key, every other frame with its session's key.
+    """
     fmt, names = _PAYLOADS[kind]
     body = _HEADER.pack(VERSION, kind, fmt.size, 0, car_id, session, seq)
     body += fmt.pack(*(fields[name] for name in names))

@@ -8,14 +8,26 @@ from udan.firmware_mock import wire
 from udan.firmware_mock.core import DUPLICATE_CACHE, CarCore, Telemetry
 
 KEY = bytes(range(100, 132))
-SESSION = 0xC0FFEE
+EDGE_NONCE = bytes(range(16))
+
+
+def accept(join: bytes, edge_nonce: bytes = EDGE_NONCE, key: bytes = KEY) -> bytes:
+    """The edge's ACCEPT answering ``join``, as the spec describes it."""
+    car_nonce = wire.parse(join).payload["car_nonce"]
+    return wire.encode(
+        wire.ACCEPT, 1, 0, 0, 0, key, car_nonce=car_nonce, edge_nonce=edge_nonce, version=2
+    )
 
 
 class Edge:
-    """Edge frames for car 1 as the spec describes them."""
+    """Edge frames for car 1 in the session a JOIN and an ACCEPT opened."""
 
-    def __init__(self, session: int = SESSION, key: bytes = KEY) -> None:
-        self.session, self.key, self.seq = session, key, 0
+    def __init__(self, join: bytes, edge_nonce: bytes = EDGE_NONCE, key: bytes = KEY) -> None:
+        car_nonce = wire.parse(join).payload["car_nonce"]
+        self.session, self.key = wire.session_for(KEY, car_nonce, edge_nonce)
+        if key != KEY:
+            self.key = key
+        self.seq = 0
 
     def command(self, action: int, now_us: int, validity_us: int = 10_000) -> bytes:
         self.seq += 1
@@ -32,28 +44,34 @@ class Edge:
 
 
 @pytest.fixture
-def car() -> CarCore:
+def joined() -> tuple[CarCore, bytes]:
+    """A car in a session, and the JOIN that opened it."""
     core = CarCore(1, KEY, marker=9)  # the default watchdog: 300 ms, as the spec says
-    core.boot(SESSION, 0)
-    return core
+    join = core.boot(0)
+    assert core.handle(accept(join), 0).verdict == "joined"
+    return core, join
 
 
-def test_boot_announces_join_and_resets(car: CarCore) -> None:
-    edge = Edge()
+@pytest.fixture
+def car(joined: tuple[CarCore, bytes]) -> CarCore:
+    return joined[0]
+
+
+@pytest.fixture
+def edge(joined: tuple[CarCore, bytes]) -> Edge:
+    return Edge(joined[1])
+
+
+def test_boot_announces_join_and_resets(car: CarCore, edge: Edge) -> None:
     assert car.handle(edge.command(0, 100), 100).verdict == "accepted"
-    join = wire.parse(car.boot(SESSION + 1, 5))
-    assert (join.type, join.session, join.seq, join.payload["marker"]) == (
-        wire.JOIN,
-        SESSION + 1,
-        1,
-        9,
-    )
+    join = wire.parse(car.boot(5))
+    assert (join.type, join.session, join.seq, join.payload["marker"]) == (wire.JOIN, 0, 0, 9)
+    assert join.payload["cause"] == wire.JOIN_BOOT and len(join.payload["car_nonce"]) == 16
     assert not car.joined and car.counters.reboots == 1
     assert car.handle(edge.command(0, 200), 200).verdict == "wrong_session"
 
 
-def test_duplicate_cache_is_bounded_then_replay(car: CarCore) -> None:
-    edge = Edge()
+def test_duplicate_cache_is_bounded_then_replay(car: CarCore, edge: Edge) -> None:
     first = edge.command(4, 10, validity_us=900_000)
     assert car.handle(first, 10).verdict == "accepted"
     assert car.handle(first, 20).verdict == "duplicate"
@@ -66,8 +84,7 @@ def test_duplicate_cache_is_bounded_then_replay(car: CarCore) -> None:
     assert car.counters.duplicates == 1 and car.counters.rejected["replay"] == 1
 
 
-def test_watchdog_trips_once_and_rearms_on_the_next_command(car: CarCore) -> None:
-    edge = Edge()
+def test_watchdog_trips_once_and_rearms_on_the_next_command(car: CarCore, edge: Edge) -> None:
     assert car.next_wakeup_us() is None
     car.handle(edge.command(0, 1_000), 1_000)
     assert car.next_wakeup_us() == 301_000
@@ -80,17 +97,18 @@ def test_watchdog_trips_once_and_rearms_on_the_next_command(car: CarCore) -> Non
     assert not car.watchdog_tripped and car.counters.watchdog_stops == 1
 
 
-def test_unauthenticated_frames_get_no_answer(car: CarCore) -> None:
-    forged = bytearray(Edge().command(0, 10))
+def test_unauthenticated_frames_get_no_answer(car: CarCore, edge: Edge, joined) -> None:
+    forged = bytearray(edge.command(0, 10))
     forged[-2] ^= 0x10
-    for data in (bytes(forged), Edge(key=bytes(32)).command(0, 10), b"\x01" * 30, b""):
+    other_key = Edge(joined[1], key=bytes(32)).command(0, 10)
+    for data in (bytes(forged), other_key, b"\x02" * 30, b""):
         out = car.handle(data, 10)
         assert out.replies == () and out.motor is None and out.verdict != "accepted"
-    assert car.counters.accepted == 0 and car.counters.received == 4
+    assert car.counters.accepted == 0 and car.counters.received == 5  # the ACCEPT, then these
 
 
-def test_time_request_is_answered_with_car_times(car: CarCore) -> None:
-    req = wire.encode(wire.TIME_REQ, 1, SESSION, 1, 50, KEY, t1_ns=123_456)
+def test_time_request_is_answered_with_car_times(car: CarCore, edge: Edge) -> None:
+    req = wire.encode(wire.TIME_REQ, 1, edge.session, 1, 50, edge.key, t1_ns=123_456)
     out = car.handle(req, 777)
     resp = wire.parse(out.replies[0])
     assert resp.type == wire.TIME_RESP

@@ -47,10 +47,11 @@ class EdgeClient(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
         event = self.proto.receive(data)
+        for _car, frame in self.proto.datagrams_to_send():  # ACCEPT, HELLO: answers
+            self.transport.sendto(frame, addr)
         if isinstance(event, ep.Joined):
             self.cars[event.car_id] = addr
-            if not event.repeat:
-                self.joins[event.car_id] = event
+            self.joins[event.car_id] = event
         self.events.put_nowait(event)
 
     @classmethod
@@ -92,7 +93,7 @@ class EdgeClient(asyncio.DatagramProtocol):
     async def join(self, car_id: int) -> ep.Joined:
         """Wait for the car's JOIN (unless it came already), then synchronise its clock."""
         if car_id not in self.joins:
-            await self.expect(ep.Joined, lambda e: e.car_id == car_id and not e.repeat)
+            await self.expect(ep.Joined, lambda e: e.car_id == car_id)
         self.send(car_id, self.proto.encode_time_request(car_id))
         await self.expect(ep.TimeSynced, lambda e: e.car_id == car_id)
         return self.joins[car_id]
@@ -176,7 +177,7 @@ async def test_forged_replayed_expired_malformed_are_rejected_never_executed(
     )
     stale = edge.proto.encode_command(1, ep.Action.RIGHT, validity_ns=1_000_000)
     await asyncio.sleep(0.01)
-    for frame in (bytes(forged), wrong_key, first, stale, first[:-3], b"\x02" + first[1:], b"\x01"):
+    for frame in (bytes(forged), wrong_key, first, stale, first[:-3], b"\x01" + first[1:], b"\x02"):
         edge.send(1, frame)
     replay = await edge.expect(ep.Acked, lambda e: e.result is ep.AckResult.REPLAY)
     expired = await edge.expect(ep.Acked, lambda e: e.result is ep.AckResult.EXPIRED)
@@ -213,12 +214,12 @@ async def test_reboot_is_detected_by_the_edge_and_the_car_must_rejoin(
     await edge.command(1, ep.Action.UP)
     old_frame = edge.proto.encode_command(1, ep.Action.UP, validity_ns=900_000_000)
     car.firmware.apply_faults({"reboot_at_s": 0.05})
-    rejoined = await edge.expect(ep.Joined, lambda e: not e.repeat)
+    rejoined = await edge.expect(ep.Joined)
     assert rejoined.reboot and rejoined.previous_session == first.session
     assert rejoined.session == car.state()["session"] != first.session
     assert not edge.proto.synced(1)
-    edge.send(1, old_frame)  # a frame of the old session: refused, the car announces itself
-    await edge.expect(ep.Joined, lambda e: e.repeat)
+    edge.send(1, old_frame)  # a frame of the old session: refused, unanswered
+    assert await edge.quiet(ep.Acked, 0.1) == []
     assert car.counters()["rejected"]["wrong_session"] == 1
     edge.send(1, edge.proto.encode_time_request(1))
     await edge.expect(ep.TimeSynced)

@@ -253,13 +253,14 @@ async def test_forged_and_garbled_frames_are_counted_never_raised(
     status = dict.fromkeys(("row", "col", "battery_mv", "faults", "state", "done_seq"), 0)
     other_key = ep.encode(ep.MsgType.STATUS, 1, 5, 9, 0, bytes(32), status)
     unknown = ep.encode(ep.MsgType.LEAVE, 77, 5, 9, 0, bytes(32), {"reason": 0})
-    for junk in (b"", b"\x02" + genuine[1:], genuine[:-1], bytes(forged), other_key, unknown):
+    for junk in (b"", b"\x01" + genuine[1:], genuine[:-1], bytes(forged), other_key, unknown):
         transport.car_send(junk)
     transport.car_send(genuine)  # a replay
     await asyncio.sleep(0.05)
     rejected = link.counters()["rejected"]
     assert rejected["malformed"] == 2 and rejected["wrong_version"] == 1
-    assert rejected["bad_tag"] == 2 and rejected["unknown_car"] == 1
+    assert rejected["bad_tag"] == 1 and rejected["unknown_car"] == 1
+    assert rejected["wrong_session"] == 1  # a session this edge never opened: no key to check
     assert rejected["replay"] >= 1
     assert (await link.dispatch({1: UP, 2: UP, 3: UP}, clock())).on_time == 3
 
@@ -355,6 +356,22 @@ async def test_estop_reaches_every_car_and_releases(
     assert (await link.dispatch({1: UP}, clock())).on_time == 1
 
 
+async def test_a_stop_holds_across_a_reboot_until_released(loop_fleet: LoopFleet) -> None:
+    link, car = loop_fleet.link, loop_fleet.cars[1].firmware
+    link.estop_all()
+    await asyncio.sleep(0.03)
+    car.reboot()  # the latch is RAM: the rebooted car has forgotten it
+    assert not car.core.estopped
+    await until(link, lambda: link.counters()["reboots"] == 1 and 1 in link.ready_cars())
+    assert car.core.estopped  # the edge sent the stop again in the new session
+    link.estop_all(engage=False)
+    await asyncio.sleep(0.03)
+    assert not car.core.estopped
+    car.reboot()
+    await until(link, lambda: link.counters()["reboots"] == 2 and 1 in link.ready_cars())
+    assert not car.core.estopped
+
+
 async def test_a_restarted_edge_gets_running_cars_back(loop_fleet: LoopFleet) -> None:
     await loop_fleet.link.close()  # the edge goes away; the cars keep their session
     sessions = {c: car.firmware.core.session for c, car in loop_fleet.cars.items()}
@@ -362,15 +379,32 @@ async def test_a_restarted_edge_gets_running_cars_back(loop_fleet: LoopFleet) ->
     await fresh.start()
     try:
         await until(fresh, lambda: fresh.ready_cars() == {1, 2, 3})
-        assert fresh.counters()["probes"] >= 3
-        assert {c: fresh.state(c).status is not None for c in sessions} == dict.fromkeys(
-            sessions, True
-        )
-        assert sessions == {c: car.firmware.core.session for c, car in loop_fleet.cars.items()}
+        assert fresh.counters()["hellos"] >= 3  # the new edge asked each car for a session
+        renewed = {c: car.firmware.core.session for c, car in loop_fleet.cars.items()}
+        assert all(renewed[c] not in (0, sessions[c]) for c in sessions)
+        assert all(not car.firmware.core.counters.reboots for car in loop_fleet.cars.values())
         report = await fresh.dispatch({1: UP, 2: UP, 3: UP}, time.monotonic_ns())
         assert report.on_time == 3
     finally:
         await fresh.close()
+
+
+async def test_a_clock_sync_too_poor_for_any_command_is_repeated_at_once(
+    clock: FakeClock,
+) -> None:
+    transport = LoopTransport(fleet(1), delay_s=0.006)  # 12 ms round trips: past the validity
+    f = LoopFleet(1, clock, transport)
+    await f.start()
+    try:
+        link = f.link
+        assert link.state(1).sync_rtt_ns >= link.validity_ns
+        asked = link.counters()["time_requests"]
+        transport.delay_s = 0.0
+        await until(link, lambda: link.state(1).sync_rtt_ns < link.validity_ns, timeout=0.5)
+        assert link.counters()["time_requests"] > asked  # long before the 1 s sync period
+        assert (await link.dispatch({1: UP}, clock())).on_time == 1
+    finally:
+        await f.close()
 
 
 async def test_invalid_action_and_concurrent_dispatch_raise(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from udan.edge import protocol as ep
@@ -24,15 +26,43 @@ class FakeClock:
 class Car:
     """Builds car -> edge frames the way the spec says (with the edge module's own encoder)."""
 
-    def __init__(self, car_id: int = 1, session: int = 77, key: bytes = KEY) -> None:
-        self.car_id, self.session, self.key, self.seq = car_id, session, key, 0
+    def __init__(self, car_id: int = 1, nonce: bytes = b"n" * 16, key: bytes = KEY) -> None:
+        self.car_id, self.nonce, self.key = car_id, nonce, key
+        self.session, self.session_key, self.seq = 0, b"", 0
 
     def frame(self, kind: ep.MsgType, car_us: int, **fields: int) -> bytes:
         self.seq += 1
-        return ep.encode(kind, self.car_id, self.session, self.seq, car_us, self.key, fields)
+        return ep.encode(
+            kind, self.car_id, self.session, self.seq, car_us, self.session_key, fields
+        )
 
-    def join(self, car_us: int, marker: int = 5) -> bytes:
-        return self.frame(ep.MsgType.JOIN, car_us, marker=marker, cause=0)
+    def join(self, car_us: int, marker: int = 5, cause: int = 0) -> bytes:
+        fields = {"marker": marker, "cause": cause, "min_version": 2, "max_version": 2}
+        fields["car_nonce"] = self.nonce
+        return ep.encode(ep.MsgType.JOIN, self.car_id, 0, 0, car_us, self.key, fields)
+
+    def take(self, accept: bytes) -> None:
+        """Open the session an ACCEPT for our nonce offers."""
+        d = ep.decode(accept)
+        assert d.type == ep.MsgType.ACCEPT and d.fields["car_nonce"] == self.nonce
+        self.session, self.session_key = ep.derive_session(
+            self.key, self.nonce, d.fields["edge_nonce"]
+        )
+        self.seq = 0
+
+    def status(self, car_us: int, done_seq: int = 0) -> bytes:
+        return self.frame(
+            ep.MsgType.STATUS, car_us, row=0, col=0, battery_mv=1, faults=0, state=0,
+            done_seq=done_seq,
+        )  # fmt: skip
+
+    def open(self, edge: ep.EdgeProtocol, car_us: int, cause: int = 0) -> ep.Event:
+        """JOIN, take the ACCEPT, confirm with a STATUS: the edge's verdict on the STATUS."""
+        assert isinstance(edge.receive(self.join(car_us, cause=cause)), ep.Joining)
+        ((car_id, accept),) = edge.datagrams_to_send()
+        assert car_id == self.car_id
+        self.take(accept)
+        return edge.receive(self.status(car_us))
 
 
 @pytest.fixture
@@ -66,14 +96,20 @@ def test_join_then_commands_need_a_clock_sync(edge: ep.EdgeProtocol, clock: Fake
     with pytest.raises(ep.NotReady):
         edge.encode_time_request(1)
     event = edge.receive(car.join(1_000))
-    assert event == ep.Joined(1, 5, 77, None)
-    assert not event.reboot and edge.joined(1) and not edge.synced(1)
+    assert event == ep.Joining(1, 5, ep.JoinCause.BOOT) and not edge.joined(1)  # an offer only
+    ((_, accept),) = edge.datagrams_to_send()
+    car.take(accept)
+    event = edge.receive(car.status(1_000))
+    assert isinstance(event, ep.Joined) and event.status is not None  # the confirming STATUS
+    assert event == ep.Joined(1, 5, car.session, None, reboot=False, status=event.status)
+    assert (event.status.session, event.status.battery_mv) == (car.session, 1)
+    assert edge.joined(1) and not edge.synced(1)
     with pytest.raises(ep.NotReady):
         edge.encode_command(1, ep.Action.UP)
     _sync(edge, clock, car, offset_ns=-3_000_000_000, rtt_ns=400_000)
     assert edge.synced(1)
     frame = ep.decode(edge.encode_command(1, ep.Action.LEFT, validity_ns=10_000_000))
-    assert (frame.car_id, frame.session, frame.seq) == (1, 77, 2)
+    assert (frame.car_id, frame.session, frame.seq) == (1, car.session, 2)
     assert frame.fields["action"] == ep.Action.LEFT
 
 
@@ -81,7 +117,7 @@ def test_time_sync_offset_and_conservative_deadline(
     edge: ep.EdgeProtocol, clock: FakeClock
 ) -> None:
     car = Car()
-    edge.receive(car.join(1_000))
+    car.open(edge, 1_000)
     offset = -7_000_123_000
     _sync(edge, clock, car, offset_ns=offset, rtt_ns=2_000_000)
     _sync(edge, clock, car, offset_ns=offset, rtt_ns=300_000)  # the better sample wins
@@ -95,40 +131,48 @@ def test_time_sync_offset_and_conservative_deadline(
 
 
 def test_reboot_is_detected_and_forces_a_new_sync(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
-    old = Car(session=100)
-    edge.receive(old.join(5_000))
+    old = Car(nonce=b"o" * 16)
+    old_join = old.join(5_000)
+    old.open(edge, 5_000)
     _sync(edge, clock, old, offset_ns=0, rtt_ns=100_000)
     edge.encode_command(1, ep.Action.UP)
-    new = Car(session=200)
-    event = edge.receive(new.join(300))
+    new = Car(nonce=b"r" * 16)
+    event = new.open(edge, 300)
     assert isinstance(event, ep.Joined) and event.reboot
-    assert (event.previous_session, event.session) == (100, 200)
-    assert edge.session(1) == 200 and not edge.synced(1)
+    assert (event.previous_session, event.session) == (old.session, new.session)
+    assert edge.session(1) == new.session != old.session and not edge.synced(1)
     with pytest.raises(ep.NotReady):
         edge.encode_command(1, ep.Action.UP)
     assert ep.decode(edge.encode_time_request(1)).seq == 1  # sequence restarts per session
-    # frames of the old session are stale now; its JOIN replayed is refused
-    status = old.frame(
-        ep.MsgType.STATUS, 6_000, row=1, col=1, battery_mv=8000, faults=0, state=0, done_seq=0
-    )
-    assert edge.receive(status) == ep.Rejected("wrong_session", 1)
-    assert edge.receive(Car(session=100).join(5_000)) == ep.Rejected("replay", 1)
+    # frames of the old session are stale now: refused, and no HELLO (the car is live)
+    assert edge.receive(old.status(6_000)) == ep.Rejected("wrong_session", 1)
+    # the old JOIN replayed gets an offer nobody takes; the session stays
+    assert isinstance(edge.receive(old_join), ep.Joining)
+    assert [f[1] for _, f in edge.datagrams_to_send()] == [ep.MsgType.ACCEPT]
+    assert edge.session(1) == new.session
 
 
-def test_repeated_join_of_the_same_session_is_not_a_reboot(
+def test_repeated_join_gets_the_same_offer_and_a_replayed_one_changes_nothing(
     edge: ep.EdgeProtocol, clock: FakeClock
 ) -> None:
     car = Car()
     first = car.join(1_000)
     edge.receive(first)
-    again = edge.receive(car.join(1_250))
-    assert isinstance(again, ep.Joined) and again.repeat and not again.reboot
-    assert edge.receive(first) == ep.Rejected("replay", 1)
+    edge.receive(car.join(1_250))  # the car repeats its JOIN: one nonce, one offer
+    offers = [f for _, f in edge.datagrams_to_send()]
+    assert len(offers) == 2 and offers[0] == offers[1]
+    car.take(offers[0])
+    assert isinstance(edge.receive(car.status(1_300)), ep.Joined)
+    session = edge.session(1)
+    for _ in range(3):
+        assert isinstance(edge.receive(first), ep.Joining)
+    assert edge.session(1) == session and edge.joined(1)
+    assert isinstance(edge.receive(car.status(1_400)), ep.StatusReport)
 
 
 def test_acks_carry_round_trip_and_receive_time(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
     car = Car()
-    edge.receive(car.join(1_000))
+    car.open(edge, 1_000)
     _sync(edge, clock, car, offset_ns=-1_000_000_000, rtt_ns=200_000)
     cmd = ep.decode(edge.encode_command(1, ep.Action.DOWN))
     sent = clock.ns
@@ -144,14 +188,8 @@ def test_acks_carry_round_trip_and_receive_time(edge: ep.EdgeProtocol, clock: Fa
 
 def test_replay_window_takes_reordered_frames_once(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
     car = Car()
-    edge.receive(car.join(1_000))
-
-    def status(us: int) -> bytes:
-        return car.frame(
-            ep.MsgType.STATUS, us, row=0, col=0, battery_mv=1, faults=0, state=0, done_seq=0
-        )
-
-    frames = [status(1_000 + i) for i in range(70)]
+    car.open(edge, 1_000)
+    frames = [car.status(1_000 + i) for i in range(70)]
     assert isinstance(edge.receive(frames[5]), ep.StatusReport)
     assert isinstance(edge.receive(frames[3]), ep.StatusReport)  # late but unseen
     assert edge.receive(frames[3]) == ep.Rejected("replay", 1)
@@ -165,11 +203,11 @@ def test_rejections(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
     assert edge.receive(b"\x09" * 40) == ep.Rejected("wrong_version")
     assert edge.receive(Car(car_id=3).join(1)) == ep.Rejected("unknown_car", 3)
     assert edge.receive(Car(key=OTHER_KEY).join(1)) == ep.Rejected("bad_tag", 1)
-    status = car.frame(
-        ep.MsgType.STATUS, 1, row=0, col=0, battery_mv=1, faults=0, state=0, done_seq=0
-    )
-    assert edge.receive(status) == ep.Rejected("not_joined", 1)
-    edge.receive(car.join(1_000))
+    car.session, car.session_key = 99, bytes(32)
+    assert edge.receive(car.status(1)) == ep.Rejected("not_joined", 1)
+    hello = [ep.decode(f) for _, f in edge.datagrams_to_send()]
+    assert [(h.type, h.fields["reason"]) for h in hello] == [(ep.MsgType.HELLO, 0)]
+    car.open(edge, 1_000)
     far = car.frame(
         ep.MsgType.STATUS,
         1_000 + 61_000_000,
@@ -186,9 +224,9 @@ def test_rejections(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
 
 
 def test_estop_all_and_leave(edge: ep.EdgeProtocol, clock: FakeClock) -> None:
-    one, two = Car(1, 11), Car(2, 22, OTHER_KEY)
-    edge.receive(one.join(1_000))
-    edge.receive(two.join(1_000))
+    one, two = Car(1, b"1" * 16), Car(2, b"2" * 16, OTHER_KEY)
+    one.open(edge, 1_000)
+    two.open(edge, 1_000)
     frames = edge.encode_estop_all()
     assert sorted(frames) == [1, 2]
     for car_id, frame in frames.items():
@@ -209,9 +247,10 @@ def test_add_car_checks_the_key() -> None:
 
 def test_can_mapping_round_trip_and_checks() -> None:
     car = Car(car_id=5)
-    frame = car.join(10)
+    car.session, car.session_key = 7, bytes(32)
+    frame = car.status(10)  # 40 bytes: padded to 48
     can_id, data = ep.can_pack(frame)
-    assert can_id == 0x185 and len(data) == 32
+    assert can_id == 0x185 and len(data) == 48
     assert ep.can_unpack(can_id, data) == frame
     with pytest.raises(ep.FrameError):
         ep.can_unpack(0x186, data)
@@ -219,3 +258,15 @@ def test_can_mapping_round_trip_and_checks() -> None:
         ep.can_unpack(can_id, data[:-1] + b"\x01")
     with pytest.raises(ValueError):
         ep.can_pack(Car(car_id=200).join(10))
+
+
+def test_a_jump_in_sequence_numbers_costs_no_time(edge: ep.EdgeProtocol) -> None:
+    """A frame 2^32 - 10 ahead must not make the replay window shift by billions of bits."""
+    car = Car()
+    car.open(edge, 1_000)
+    car.seq = 2**32 - 11
+    started = time.perf_counter()
+    assert isinstance(edge.receive(car.status(1_000)), ep.StatusReport)
+    assert time.perf_counter() - started < 0.05  # it took seconds and gigabytes before
+    car.seq = 2**32 - 13
+    assert isinstance(edge.receive(car.status(1_000)), ep.StatusReport)  # inside the window

@@ -98,6 +98,19 @@ def test_forged_and_malformed_datagrams_are_dropped_and_counted(tmp_path: Path) 
     assert abs(s["headline"]["sim_to_hil_gap"]) <= 0.02
 
 
+def test_two_runs_with_one_seed_share_no_session(tmp_path: Path) -> None:
+    """The harness passes a fixed seed; it drives the world, never the cars' session nonces."""
+    sessions = []
+    for run in ("first", "second"):
+        s = run_hil(tmp_path / run, "--cars", "2", "--obstacles", "0", "--episodes", "1")
+        assert s["headline"]["exits"] == {"world": 0, "edge": 0}
+        cars = s["world"]["cars"]
+        assert sorted(cars) == ["1", "2"] and all(cars[c]["sessions"] for c in cars)
+        sessions.append({session for c in cars for session in cars[c]["sessions"]})
+    assert s["config"]["seed"] == 0
+    assert sessions[0] and sessions[1] and not sessions[0] & sessions[1]
+
+
 def test_loss_jitter_duplication_reordering_never_late_never_unsafe(tmp_path: Path) -> None:
     s = run_hil(
         tmp_path, "--cars", "3", "--obstacles", "0-1", "--episodes", "1",
