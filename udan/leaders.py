@@ -82,9 +82,10 @@ def collect(
 
 def row(agents: int, prob: np.ndarray, delta: np.ndarray, threshold: float) -> LeaderRow:
     """The statistics of one fleet size's candidates."""
+    from udan.learner import leader_targets
+
     lead = prob > threshold
-    span = delta.max() - delta.min() if len(delta) else 0.0
-    minmax = (delta - delta.min()) / span if span > 1e-8 else np.full_like(delta, 0.5)
+    minmax = leader_targets(torch.from_numpy(delta), "minmax").numpy()
     varied = len(delta) > 1 and prob.std() > 0 and delta.std() > 0
     values = {
         "leading": float(lead.mean()),
