@@ -34,7 +34,6 @@ import asyncio
 import contextlib
 import json
 import pickle
-import signal
 import socket
 import subprocess
 import sys
@@ -54,18 +53,19 @@ from udan.edge.camera import (
 )
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage
+from udan.edge.sidecar import (
+    MESSAGE_BYTES,
+    STOP_TIMEOUT_S,
+    exit_of,
+    ignore_interrupts,
+    reap,
+    spawn,
+)
 from udan.edge.vision import Scene, Vision
 
 START_TIMEOUT_S = 30.0
 """Longest the edge waits for the perception process to open its camera (a cold start imports
 OpenCV and numpy from disk)."""
-STOP_TIMEOUT_S = 3.0
-"""Longest the edge waits for the perception process to close its camera and exit."""
-EXIT_STATUS_WAIT_S = 1.0
-"""Longest an error message waits for a perception process that closed its socket to exit."""
-MESSAGE_BYTES = 1 << 16
-"""Largest message either side reads: a scene of five cars is ~0.6 KB pickled, and the marker
-dictionary has 50 ids (a frame is never sent)."""
 _ERRORS = {"camera": CameraError, "vision": VisionError}
 
 
@@ -83,7 +83,7 @@ class PerceptionDied(PerceptionError):
         self.proc = proc
 
     def __str__(self) -> str:
-        return f"the perception process ended mid-run ({_exit_of(self.proc)})"
+        return f"the perception process ended mid-run ({exit_of(self.proc)})"
 
 
 @dataclass(frozen=True)
@@ -246,24 +246,9 @@ class ProcessPerception(Perception):
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
         self._buffer = bytearray(MESSAGE_BYTES)
-        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        cmd = [
-            sys.executable, "-m", "udan.edge.perception", "--fd", str(theirs.fileno()),
-            "--camera", camera, "--vision", settings.to_json(),
-        ]  # fmt: skip
-        # its own process group, so a Ctrl-C on the terminal is the edge's alone to handle, but
-        # the edge's session: Linux's autogroup scheduling shares the CPU between sessions
-        # first, and in a session of its own the process would stand level with the edge's
-        # loop whatever its threads' niceness
-        try:
-            self._proc = subprocess.Popen(
-                cmd, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, process_group=0
-            )
-        except BaseException:
-            self._sock.close()
-            raise
-        finally:
-            theirs.close()
+        self._sock, self._proc = spawn(
+            "udan.edge.perception", ["--camera", camera, "--vision", settings.to_json()]
+        )
 
     def wait_ready(self) -> None:
         if self.sweep_frames:
@@ -278,7 +263,7 @@ class ProcessPerception(Perception):
         if not first:
             self._stream_ended = True
             raise PerceptionError(
-                f"the perception process ended while starting ({_exit_of(self._proc)})"
+                f"the perception process ended while starting ({exit_of(self._proc)})"
             )
         kind, *body = pickle.loads(first)
         if kind == "error":
@@ -404,28 +389,7 @@ class ProcessPerception(Perception):
                         self._captured, self._dropped_there = body[-2], body[-1]
             self._stream_ended = True
         self._sock.close()
-        _reap(self._proc)
-
-
-def _exit_of(proc: subprocess.Popen) -> str:
-    """How a process ended, in words (waiting a moment at most)."""
-    try:  # a killed process closes its files a moment before its exit status is ready
-        code = proc.wait(EXIT_STATUS_WAIT_S)
-    except subprocess.TimeoutExpired:
-        return "its socket closed"
-    if code < 0:
-        with contextlib.suppress(ValueError):
-            return f"killed by {signal.Signals(-code).name}"
-    return f"exit code {code}"
-
-
-def _reap(proc: subprocess.Popen) -> None:
-    """Wait for a process told to stop; kill it if it does not."""
-    try:
-        proc.wait(STOP_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+        reap(self._proc)
 
 
 # -- the perception process itself ---------------------------------------------------------
@@ -501,8 +465,7 @@ def _error_kind(err: Exception) -> str:
 def serve(fd: int, camera: str, settings: VisionSettings) -> int:
     """The perception process: open ``camera`` and build the vision, say "ready" (or the error,
     one line), wait for "start", then send scenes until told to stop or the edge goes away."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
+    ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
         vision = settings.build()

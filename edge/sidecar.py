@@ -1,0 +1,145 @@
+"""Processes beside the control loop: started with a socket pair, fed without ever blocking it.
+
+Anything that runs beside the loop — the perception, a recorder, a web view — runs in a process
+of its own (a thread would take turns with the loop at the interpreter lock). They share one
+shape:
+
+- :func:`spawn` starts ``python -m MODULE --fd N ...`` with its end of a Unix ``SOCK_SEQPACKET``
+  socket pair: one message per send, in order, never merged. The child runs in a process group
+  of its own (a Ctrl-C on the terminal is the edge's to handle) but in the edge's session
+  (Linux's autogroup shares the CPU between sessions first: a session of its own would stand
+  level with the loop whatever its niceness). It ends when its end of the socket reads EOF, so
+  it never outlives the edge, however the edge ended (even SIGKILL).
+- :class:`Outlet` is the loop's side of a child that only listens: :meth:`Outlet.offer` pickles
+  a record and sends it if the socket has room, else drops and counts it. The socket's buffer is
+  the bound; the loop never waits for the child.
+- :func:`records` is the child's side: every record until the edge closes its end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+STOP_TIMEOUT_S = 3.0
+"""Longest the edge waits for a child told to stop to exit before it is killed."""
+EXIT_STATUS_WAIT_S = 1.0
+"""Longest an error message waits for a child that closed its socket to exit."""
+MESSAGE_BYTES = 1 << 16
+"""Largest message either side reads at once."""
+
+
+def spawn(module: str, args: Sequence[str] = ()) -> tuple[socket.socket, subprocess.Popen]:
+    """Start ``python -m module --fd N *args``; returns the edge's end of the socket pair and the
+    process. The child's end is closed here once the child holds it."""
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    cmd = [sys.executable, "-m", module, "--fd", str(theirs.fileno()), *args]
+    try:
+        proc = subprocess.Popen(
+            cmd, pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, process_group=0
+        )
+    except BaseException:
+        ours.close()
+        raise
+    finally:
+        theirs.close()
+    return ours, proc
+
+
+def exit_of(proc: subprocess.Popen) -> str:
+    """How a process ended, in words (waiting a moment at most)."""
+    try:  # a killed process closes its files a moment before its exit status is ready
+        code = proc.wait(EXIT_STATUS_WAIT_S)
+    except subprocess.TimeoutExpired:
+        return "its socket closed"
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+    return f"exit code {code}"
+
+
+def reap(proc: subprocess.Popen, timeout_s: float = STOP_TIMEOUT_S) -> None:
+    """Wait for a process told to stop; kill it if it does not."""
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def ignore_interrupts() -> None:
+    """In a child: SIGINT and SIGTERM are the edge's to handle (it stops the cars first, then
+    its children)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+
+
+class Outlet:
+    """A bounded channel from the control loop to a listening child process that never blocks
+    the loop: a record the socket has no room for is dropped and counted."""
+
+    def __init__(self, module: str, args: Sequence[str] = (), *, buffer_bytes: int = 1 << 20):
+        """Start the child; ``buffer_bytes`` bounds what may wait in the socket for it."""
+        self.module = module
+        self.sent = 0
+        self.dropped = 0
+        """Records the socket had no room for (the child is behind) or that were too large."""
+        self._sock, self.proc = spawn(module, args)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, buffer_bytes)
+        self._sock.setblocking(False)
+
+    @property
+    def alive(self) -> bool:
+        """The child has not ended."""
+        return self.proc.poll() is None
+
+    def offer(self, record: Any) -> bool:
+        """Send ``record`` if there is room now; returns whether it went. Never waits."""
+        if self._sock.fileno() < 0:
+            self.dropped += 1
+            return False
+        data = pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)
+        if len(data) > MESSAGE_BYTES:  # the child would read it cut short
+            self.dropped += 1
+            return False
+        try:
+            self._sock.send(data)
+        except OSError:  # no room (BlockingIOError), or the child has gone
+            self.dropped += 1
+            return False
+        self.sent += 1
+        return True
+
+    def close(self, timeout_s: float = STOP_TIMEOUT_S) -> str:
+        """Close the edge's end (the child reads EOF, finishes what it holds and exits) and
+        wait for it; one that does not exit in time is killed. Returns how it ended."""
+        if self._sock.fileno() >= 0:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_WR)
+            reap(self.proc, timeout_s)
+            self._sock.close()
+        return exit_of(self.proc)
+
+
+def records(fd: int) -> Iterator[Any]:
+    """In the child: every record the edge offers, in order, until the edge closes its end or
+    goes away."""
+    sock = socket.socket(fileno=fd)
+    buffer = bytearray(MESSAGE_BYTES)
+    try:
+        while True:
+            try:
+                size = sock.recv_into(buffer)
+            except OSError:
+                return
+            if not size:
+                return
+            yield pickle.loads(memoryview(buffer)[:size])
+    finally:
+        sock.close()
