@@ -4,16 +4,22 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow hil bench lint wheel-check clean
+.PHONY: install system-deps demo test test-slow hil bench lint wheel-check clean
 
 install: $(STAMP)
 
+# The system libraries the gige extra builds against and loads (apt; installed when missing and
+# we are root, else named): PyGObject, pycairo and libaravis (docs/lab-setup.md).
+system-deps:
+	@bash .ci/system-deps
+
 # torch is pinned: 2.13.0 is a CPU build on these machines, an unpinned torch pulls CUDA.
 $(STAMP): pyproject.toml
+	@bash .ci/system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[train,dev]'
+	$(PY) -m pip install --quiet -e '.[train,dev,gige]'
 	touch $(STAMP)
 
 # The edge runtime against the virtual camera and the mock fleet, with the bundled policy.

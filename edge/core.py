@@ -13,13 +13,19 @@ When a step is due: on the first frame captured after every car of the fleet fin
 it, once ``unseen_grace_ns`` has passed since the moves finished (the car is then judged on its
 last cell); or when the step period (``step_timeout_ns``) runs out (cars still in a move then get
 ``wait`` and their destinations are held).
+
+Everything the core consumes can be written down as it comes (a :class:`CoreJournal`, in the
+manner of aioquic's QUIC logger): each call's inputs, what the link said about the cars, the
+``now`` values and the decision clock. Fed the same entries in the same order, a core with the
+same policy makes the same decisions bit for bit (``udan-edge --replay``,
+:mod:`udan.edge.replay`); with another policy, the decisions that policy would have made.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -47,6 +53,21 @@ class StepTiming:
     """Longest a step waits for a car the camera missed (then it is judged on its last cell)."""
 
 
+class CoreJournal(Protocol):
+    """Takes every input of a core as it comes: ``log(call, *inputs)`` with the calls
+
+    - ``start(stepped_ns, timing)``: the clock's first reading, and the step timing;
+    - ``see(now, ready, scene)``, ``due(now, moving)`` (the cars the link said had not finished
+      their move), ``decide(now, decided_ns, state, decision)`` (the decision clock's reading,
+      and the step's fleet state and decision for whoever reads the journal),
+      ``dispatched(state_ns, report)``, ``wait_for_moves(now)``, ``new_episode(now)``,
+      ``credit_last_step(rewards)`` (on the last scene seen) and ``emergency_stop()``.
+
+    It must be cheap: it runs inside the control step (keep the entries, send them later)."""
+
+    def log(self, call: str, *inputs: Any) -> None: ...
+
+
 def _outcome(command: CommandReport) -> str:
     """on_time (the car accepted it in time), missed, or not_ready (nothing was sent)."""
     if command.acked:
@@ -63,11 +84,13 @@ class ControlCore:
         policy_step: DecisionStep,
         clock: Callable[[], int],
         timing: StepTiming = StepTiming(),
+        journal: CoreJournal | None = None,
     ) -> None:
         self.fleet = fleet
         self.policy_step = policy_step
         self.timing = timing
         self._clock = clock
+        self._log = None if journal is None else journal.log
         self.static: dict[str, frozenset[Cell]] | None = None  # the last scene's cell markers
         self.uncertain: set[int] = set()  # cars the last scene could not place in a cell
         self.not_before_ns = 0  # frames captured earlier are stale: not analysed
@@ -76,6 +99,8 @@ class ControlCore:
         self._last_decision_ns = 0  # how long the last decision took (state to commands)
         self._finished_at: int | None = None  # when every car's move was seen finished
         self._stepped_at = clock()  # when the last step was dispatched
+        if self._log is not None:
+            self._log("start", self._stepped_at, timing)
 
     # ------------------------------------------------------------------ frames in
     def wants(self, t_capture_ns: int) -> bool:
@@ -86,6 +111,9 @@ class ControlCore:
         """Fold one frame's scene and the link's ready cars at ``now`` into the fleet. A car
         seen too near a cell border to name its cell (`uncertain`) keeps its last cell and is
         held by the next step; one never placed yet is not taken into the fleet until it is."""
+        if self._log is not None:
+            ready = tuple(ready)
+            self._log("see", now, ready, scene)
         self.static = scene.cells
         fleet, seen = self.fleet, []
         self.uncertain = set()
@@ -146,8 +174,12 @@ class ControlCore:
         frame (see the module docstring); ``finished`` tells whether a car ended its move."""
         fleet = self.fleet
         if self.stopped or not fleet.slot:
+            if self._log is not None:
+                self._log("due", now, ())
             return None
         moving = fleet.moving(finished)
+        if self._log is not None:
+            self._log("due", now, tuple(moving))
         if not moving and self._finished_at is None:
             self._finished_at = now
         finished_at = self._finished_at
@@ -179,6 +211,8 @@ class ControlCore:
         self.fleet.stepped()
         decided_ns = self._clock()
         self._last_decision_ns = decided_ns - now
+        if self._log is not None:
+            self._log("decide", now, decided_ns, state, decision)
         commands = {c: int(a) for c, a in zip(decision.cars, decision.commands, strict=True)}
         return decision, commands, decided_ns
 
@@ -191,6 +225,8 @@ class ControlCore:
         state_ns: int,
     ) -> dict[str, Any]:
         """What became of a step's commands; returns the step's telemetry record."""
+        if self._log is not None:
+            self._log("dispatched", state_ns, report)
         decided_ns = report.decision_ns
         rehearsed, self._rehearsed = self._rehearsed, False
         self.fleet.command.update(commands)
@@ -240,12 +276,16 @@ class ControlCore:
     def wait_for_moves(self, now: int) -> None:
         """The step is done (dispatched, the pause after it taken): the next one waits for the
         moves it started."""
+        if self._log is not None:
+            self._log("wait_for_moves", now)
         self._finished_at = None
         self._stepped_at = now
 
     # ------------------------------------------------------------------ episodes, stop
     def new_episode(self, now: int) -> None:
         """A new episode: no car, empty memories, frames captured before ``now`` are stale."""
+        if self._log is not None:
+            self._log("new_episode", now)
         self.policy_step.reset()
         self._rehearsed = False
         self.fleet.reset()
@@ -254,12 +294,17 @@ class ControlCore:
     def credit_last_step(self, scene: Scene) -> np.ndarray | None:
         """The rewards of the step that just ended, credited without deciding again (the end
         of an episode), from a frame that shows every car; None if this one does not."""
-        if not self.all_seen(scene):
-            return None
-        slots = dict(self.fleet.slot)
-        cells = {c: self.fleet.cell[c] for c in slots}
-        return self.policy_step.credit_last_step(slots, cells, scene.cells)
+        rewards = None
+        if self.all_seen(scene):
+            slots = dict(self.fleet.slot)
+            cells = {c: self.fleet.cell[c] for c in slots}
+            rewards = self.policy_step.credit_last_step(slots, cells, scene.cells)
+        if self._log is not None:
+            self._log("credit_last_step", rewards)
+        return rewards
 
     def emergency_stop(self) -> None:
         """No step is decided any more (the caller stops the cars)."""
+        if self._log is not None:
+            self._log("emergency_stop")
         self.stopped = True

@@ -15,6 +15,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from itertools import chain
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,7 +24,9 @@ from udan.edge.safety import Filtered, filter_moves
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
 from udan.envs.observe import ObsSpec, observe
 from udan.envs.rules import ACTION_DELTAS, OBSTACLE, WAIT, WALL, WATER
-from udan.export.runtime import OnnxPolicy
+
+if TYPE_CHECKING:  # the caller builds the policy; deciding needs only its methods
+    from udan.export.runtime import OnnxPolicy
 
 _KIND_CODES = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
 TASKS = ("find_water", "surround")

@@ -46,7 +46,11 @@ from typing import Any
 from udan.edge.calibration import VisionError
 from udan.edge.camera import (
     CameraError,
+    CameraMode,
+    CameraSource,
+    Frame,
     FrameGrabber,
+    FrameWriter,
     open_camera,
     yield_process_to_dispatch,
     yield_to_dispatch,
@@ -127,6 +131,56 @@ class VisionSettings:
         )
 
 
+RING_BYTES = 64 << 20
+"""Shared memory for the ring of analysed frames kept for the flight recorder (16 frames of
+1920x1200, 8 of 4K)."""
+RING_MIN_SLOTS = 4
+RING_MAX_SLOTS = 16
+
+
+class FrameRing:
+    """The analysed frames, for the flight recorder (:mod:`udan.edge.recorder`): each one is
+    copied into the shared memory ``name`` after its scene has gone, where the recorder takes
+    the ones a decision used. Made at the first frame, at that frame's size (a frame of another
+    size is not kept); removed on close."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.kept = 0
+        self._writer: FrameWriter | None = None
+
+    @staticmethod
+    def slots(width: int, height: int) -> int:
+        """Frames the ring holds at this size."""
+        return max(RING_MIN_SLOTS, min(RING_MAX_SLOTS, RING_BYTES // max(1, width * height)))
+
+    def keep(self, frame: Frame) -> None:
+        image = frame.image
+        if self._writer is None:
+            height, width = image.shape
+            self._writer = FrameWriter(self.name, width, height, self.slots(width, height))
+        layout = self._writer.layout
+        if image.shape == (layout.height, layout.width):
+            self.kept += 1
+            self._writer.publish(self.kept, frame.t_capture_ns, image)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+
+
+def camera_facts(source: CameraSource) -> dict[str, Any]:
+    """What the edge reports of an opened camera: its URL, the options asked, the granted
+    mode and how it differs from the asked one."""
+    mode: CameraMode | None = source.mode
+    return {
+        "url": source.url,
+        "asked": source.options.given,
+        "mode": None if mode is None else asdict(mode),
+        "warnings": list(source.warnings),
+    }
+
+
 class Perception(ABC):
     """Frames to scenes beside the event loop; see the module docstring."""
 
@@ -148,6 +202,21 @@ class Perception(ABC):
     @abstractmethod
     def ended(self) -> bool:
         """The stream has ended and every scene of it has been taken."""
+
+    @property
+    @abstractmethod
+    def counters(self) -> dict[str, int]:
+        """Frames captured and dropped, and what the camera source skipped (stale frames,
+        incomplete GenICam buffers)."""
+
+    @property
+    @abstractmethod
+    def camera(self) -> dict[str, Any]:
+        """The camera as opened (:func:`camera_facts`); empty until :meth:`wait_ready`."""
+
+    @abstractmethod
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        """What happened to the camera since the last call ("camera_lost", "camera_back")."""
 
     @abstractmethod
     def wait_ready(self) -> None:
@@ -179,9 +248,12 @@ class ThreadPerception(Perception):
     """Capture in a thread (:class:`~udan.edge.camera.FrameGrabber`) and vision in a one-thread
     executor, both in the edge process and under its interpreter lock."""
 
-    def __init__(self, grabber: FrameGrabber, vision: Vision) -> None:
+    def __init__(
+        self, grabber: FrameGrabber, vision: Vision, ring: FrameRing | None = None
+    ) -> None:
         self.grabber = grabber
         self.vision = vision
+        self.ring = ring
         self.sweep_frames = vision.sweep_frames
         self._pool = ThreadPoolExecutor(
             1, thread_name_prefix="vision", initializer=yield_to_dispatch
@@ -198,8 +270,25 @@ class ThreadPerception(Perception):
         return self.grabber.dropped
 
     @property
+    def counters(self) -> dict[str, int]:
+        return self.grabber.counters()
+
+    @property
+    def camera(self) -> dict[str, Any]:
+        return camera_facts(self.grabber.source)
+
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        return self.grabber.take_news()
+
+    @property
     def ended(self) -> bool:
         return self._analysing is None and self.grabber.ended
+
+    def _analyse(self, frame: Frame) -> Scene:
+        scene = self.vision.process(frame)
+        if self.ring is not None:
+            self.ring.keep(frame)
+        return scene
 
     def wait_ready(self) -> None:
         """Nothing to wait for: the camera was opened and the vision built by the caller."""
@@ -217,26 +306,32 @@ class ThreadPerception(Perception):
         while (frame := await self.grabber.next_frame(timeout)) is not None:
             if frame.t_capture_ns >= self._not_before_ns:
                 loop = asyncio.get_running_loop()
-                self._analysing = loop.run_in_executor(self._pool, self.vision.process, frame)
+                self._analysing = loop.run_in_executor(self._pool, self._analyse, frame)
                 return FrameTaken(frame.index, frame.t_capture_ns)
         return None
 
     def close(self) -> None:
         self.grabber.close()
         self._pool.shutdown(wait=True)
+        if self.ring is not None:
+            self.ring.close()
 
 
 # -- in a process of its own ----------------------------------------------------------------
 class ProcessPerception(Perception):
     """The camera and the vision in a perception process of their own."""
 
-    def __init__(self, camera: str, settings: VisionSettings = VisionSettings()) -> None:
+    def __init__(
+        self, camera: str, settings: VisionSettings = VisionSettings(), ring: str | None = None
+    ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
-        caller goes on; :meth:`wait_ready` waits for that)."""
-        self.camera = camera
+        caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
+        it analysed there for the flight recorder (:class:`FrameRing`)."""
+        self.url = camera
         self.sweep_frames = 0
-        self._captured = 0
-        self._dropped_there = 0  # frames the perception process's grabber overwrote
+        self._camera: dict[str, Any] = {}
+        self._counts: dict[str, int] = {"captured": 0, "dropped": 0}
+        self._news: list[tuple[str, dict[str, Any]]] = []
         self._superseded = 0  # scenes superseded here before the loop took them
         self._scene: Scene | None = None
         self._taken: FrameTaken | None = None
@@ -246,8 +341,9 @@ class ProcessPerception(Perception):
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
         self._buffer = bytearray(MESSAGE_BYTES)
+        args = ["--camera", camera, "--vision", settings.to_json()]
         self._sock, self._proc = spawn(
-            "udan.edge.perception", ["--camera", camera, "--vision", settings.to_json()]
+            "udan.edge.perception", [*args, "--ring", ring] if ring else args
         )
 
     def wait_ready(self) -> None:
@@ -258,7 +354,7 @@ class ProcessPerception(Perception):
             first = self._sock.recv(MESSAGE_BYTES)
         except TimeoutError:
             raise PerceptionError(
-                f"the perception process did not open {self.camera} within {START_TIMEOUT_S:g} s"
+                f"the perception process did not open {self.url} within {START_TIMEOUT_S:g} s"
             ) from None
         if not first:
             self._stream_ended = True
@@ -270,7 +366,7 @@ class ProcessPerception(Perception):
             self._stream_ended = True
             raise _ERRORS.get(body[0], PerceptionError)(body[1])
         self._sock.setblocking(False)
-        self.sweep_frames = int(body[0])
+        self.sweep_frames, self._camera = int(body[0]), body[1]
 
     @property
     def pid(self) -> int:
@@ -278,11 +374,23 @@ class ProcessPerception(Perception):
 
     @property
     def captured(self) -> int:
-        return self._captured
+        return self._counts["captured"]
 
     @property
     def dropped(self) -> int:
-        return self._dropped_there + self._superseded
+        return self._counts["dropped"] + self._superseded
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {**self._counts, "dropped": self.dropped}
+
+    @property
+    def camera(self) -> dict[str, Any]:
+        return self._camera
+
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        news, self._news = self._news, []
+        return news
 
     @property
     def ended(self) -> bool:
@@ -333,9 +441,11 @@ class ProcessPerception(Perception):
         elif kind == "error":
             self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
             return
+        elif kind == "news":
+            self._news.append((body[0], body[1]))
         elif kind == "end":
             self._end(None)
-        self._captured, self._dropped_there = body[-2], body[-1]
+        self._counts = body[-1]
 
     def _end(self, error: Exception | None) -> None:
         self._stream_ended = True
@@ -385,8 +495,8 @@ class ProcessPerception(Perception):
             with contextlib.suppress(OSError, EOFError, pickle.UnpicklingError):
                 while data := self._sock.recv(MESSAGE_BYTES):
                     kind, *body = pickle.loads(data)
-                    if kind in ("taken", "scene", "end"):
-                        self._captured, self._dropped_there = body[-2], body[-1]
+                    if kind in ("taken", "scene", "news", "end"):
+                        self._counts = body[-1]
             self._stream_ended = True
         self._sock.close()
         reap(self._proc)
@@ -399,10 +509,17 @@ class _Server:
     POLL_S = 0.1
     """How often a frame wait wakes to look for a stop (a stop also wakes it at once)."""
 
-    def __init__(self, sock: socket.socket, grabber: FrameGrabber, vision: Vision) -> None:
+    def __init__(
+        self,
+        sock: socket.socket,
+        grabber: FrameGrabber,
+        vision: Vision,
+        ring: FrameRing | None = None,
+    ) -> None:
         self.sock = sock
         self.grabber = grabber
         self.vision = vision
+        self.ring = ring
         self.not_before_ns = 0
         self.unsent = 0
         """Scenes the edge's full socket had no room for (it is not reading: they are old)."""
@@ -410,9 +527,10 @@ class _Server:
 
     def send(self, *message: Any) -> None:
         """A message with the counts so far; a scene the socket has no room for is dropped."""
-        counts = (self.grabber.captured, self.grabber.dropped + self.unsent)
+        counts = self.grabber.counters()
+        counts["dropped"] += self.unsent
         try:
-            self.sock.send(pickle.dumps((*message, *counts)))
+            self.sock.send(pickle.dumps((*message, counts)))
         except BlockingIOError:
             self.unsent += message[0] == "scene"
 
@@ -447,12 +565,16 @@ class _Server:
                     grabbing.cancel()
                     break
                 frame = grabbing.result()
+                for kind, fields in self.grabber.take_news():
+                    self.send("news", kind, fields)
                 if frame is None and self.grabber.ended:
                     break
                 if frame is None or frame.t_capture_ns < self.not_before_ns:
                     continue
                 self.send("taken", frame.index, frame.t_capture_ns)
                 self.send("scene", self.vision.process(frame))
+                if self.ring is not None:
+                    self.ring.keep(frame)
         finally:
             stopping.cancel()
             loop.remove_reader(self.sock.fileno())
@@ -462,9 +584,10 @@ def _error_kind(err: Exception) -> str:
     return "camera" if isinstance(err, CameraError) else "vision"
 
 
-def serve(fd: int, camera: str, settings: VisionSettings) -> int:
-    """The perception process: open ``camera`` and build the vision, say "ready" (or the error,
-    one line), wait for "start", then send scenes until told to stop or the edge goes away."""
+def serve(fd: int, camera: str, settings: VisionSettings, ring: str | None = None) -> int:
+    """The perception process: open ``camera`` and build the vision, say "ready" with the
+    camera's granted mode (or the error, one line), wait for "start", then send scenes until
+    told to stop or the edge goes away; with ``ring``, keep the analysed frames there."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -474,10 +597,11 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         sock.send(pickle.dumps(("error", _error_kind(err), str(err))))
         return 2
     grabber = FrameGrabber(source)
-    server = _Server(sock, grabber, vision)
+    frames = None if ring is None else FrameRing(ring)
+    server = _Server(sock, grabber, vision, frames)
     try:
         freeze_garbage()
-        sock.send(pickle.dumps(("ready", vision.sweep_frames)))
+        sock.send(pickle.dumps(("ready", vision.sweep_frames, camera_facts(source))))
         while (data := sock.recv(MESSAGE_BYTES)) and pickle.loads(data)[0] != "start":
             server.control(data)
             if server.stopping.is_set():  # stopped before the run began
@@ -496,6 +620,8 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         return 0
     finally:
         grabber.close()
+        if frames is not None:
+            frames.close()
     return 0
 
 
@@ -506,8 +632,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--camera", required=True)
     parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
+    parser.add_argument("--ring", help="keep the analysed frames in this shared memory")
     args = parser.parse_args(argv)
-    return serve(args.fd, args.camera, args.vision)
+    return serve(args.fd, args.camera, args.vision, args.ring)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import signal
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from udan.edge.core import ControlCore, StepTiming
 from udan.edge.fleet import FleetState
@@ -55,6 +55,12 @@ class LoopConfig:
         return StepTiming(int(self.step_timeout_s * 1e9), int(self.unseen_grace_s * 1e9))
 
 
+class Flushable(Protocol):
+    """What keeps records inside a step and sends them between steps (the flight recorder)."""
+
+    def flush(self) -> None: ...
+
+
 class EdgeShell:
     """Wires perception, link and telemetry around a :class:`ControlCore`; ``run`` is the whole
     job."""
@@ -66,12 +72,14 @@ class EdgeShell:
         core: ControlCore,
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
+        recorder: Flushable | None = None,
     ) -> None:
         self.perception = perception
         self.link = link
         self.core = core
         self.telemetry = telemetry
         self.config = config
+        self.recorder = recorder
         self.stop = asyncio.Event()
         self._collections = 0
         self._longest_collection_ns = 0
@@ -106,11 +114,14 @@ class EdgeShell:
                 loop.remove_signal_handler(sig)
             await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
             self.perception.close()
+            self._camera_news()
+            if self.recorder is not None:
+                self.recorder.flush()
         report = self.telemetry.report()
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
         perception = self.perception
-        report["camera"] = {"captured": perception.captured, "dropped": perception.dropped}
+        report["camera"] = {**perception.counters, **perception.camera}
         report["gc"] = {
             "collections": self._collections,
             "longest_ms": round(self._longest_collection_ns / 1e6, 3),
@@ -136,7 +147,18 @@ class EdgeShell:
             return event
         return None
 
+    def _camera_news(self) -> None:
+        """The camera's news into telemetry: lost (with the reason; no scene comes, so no step
+        is decided and the cars stop after their move) and back."""
+        for kind, fields in self.perception.take_news():
+            self.telemetry.event(kind, **fields)
+
     async def _wait_event(self) -> FrameTaken | Scene | None:
+        """The next news from the perception. Before waiting (the loop is idle until then),
+        the camera's news go to telemetry and the flight recorder sends what it kept."""
+        self._camera_news()
+        if self.recorder is not None:
+            self.recorder.flush()
         perception = self.perception
         stopping = asyncio.ensure_future(self.stop.wait())
         waiting = asyncio.ensure_future(perception.next_event(self.config.stall_s))
@@ -161,7 +183,9 @@ class EdgeShell:
             self.telemetry.event("fleet_leave", car=car)
         seen = sum(s.inside for s in scene.cars.values())
         dropped = self.perception.dropped
-        self.telemetry.frame(scene.frame_index, scene.t_capture_ns, now, seen, dropped)
+        self.telemetry.frame(
+            scene.frame_index, scene.t_capture_ns, now, seen, dropped, scene.t_arrival_ns
+        )
 
     # ------------------------------------------------------------------ steps
     def _collect(self) -> None:

@@ -13,7 +13,10 @@ shape:
 - :class:`Outlet` is the loop's side of a child that only listens: :meth:`Outlet.offer` pickles
   a record and sends it if the socket has room, else drops and counts it. The socket's buffer is
   the bound; the loop never waits for the child.
-- :func:`records` is the child's side: every record until the edge closes its end.
+- :func:`records` is the child's side: every record until the edge closes its end. A child
+  with something to say at the end (what it wrote, what it missed) reads through an
+  :class:`Inlet` and :meth:`Inlet.reply` s on the same socket; :meth:`Outlet.close` collects the
+  replies (:attr:`Outlet.replies`) once the child has exited.
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ class Outlet:
         self.sent = 0
         self.dropped = 0
         """Records the socket had no room for (the child is behind) or that were too large."""
+        self.replies: list[Any] = []
+        """What the child replied (:meth:`Inlet.reply`), collected by :meth:`close`."""
         self._sock, self.proc = spawn(module, args)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, buffer_bytes)
         self._sock.setblocking(False)
@@ -123,23 +128,47 @@ class Outlet:
             with contextlib.suppress(OSError):
                 self._sock.shutdown(socket.SHUT_WR)
             reap(self.proc, timeout_s)
+            with contextlib.suppress(OSError):  # the child has exited: what it sent is all here
+                while data := self._sock.recv(MESSAGE_BYTES):
+                    self.replies.append(pickle.loads(data))
             self._sock.close()
         return exit_of(self.proc)
 
 
-def records(fd: int) -> Iterator[Any]:
-    """In the child: every record the edge offers, in order, until the edge closes its end or
-    goes away."""
-    sock = socket.socket(fileno=fd)
-    buffer = bytearray(MESSAGE_BYTES)
-    try:
+class Inlet:
+    """The child's end of an :class:`Outlet`: every record the edge offers (iterate), and
+    replies the edge reads when it closes the outlet."""
+
+    def __init__(self, fd: int) -> None:
+        self._sock = socket.socket(fileno=fd)
+
+    def __iter__(self) -> Iterator[Any]:
+        """Every record, in order, until the edge closes its end or goes away."""
+        buffer = bytearray(MESSAGE_BYTES)
         while True:
             try:
-                size = sock.recv_into(buffer)
+                size = self._sock.recv_into(buffer)
             except OSError:
                 return
             if not size:
                 return
             yield pickle.loads(memoryview(buffer)[:size])
+
+    def reply(self, record: Any) -> None:
+        """Send ``record`` back (small: it must fit one message); dropped if the edge has
+        gone."""
+        with contextlib.suppress(OSError):
+            self._sock.send(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def records(fd: int) -> Iterator[Any]:
+    """In the child: every record the edge offers, in order, until the edge closes its end or
+    goes away."""
+    inlet = Inlet(fd)
+    try:
+        yield from inlet
     finally:
-        sock.close()
+        inlet.close()

@@ -3,13 +3,15 @@
 Spans of the timing model (docs/timing.md), in the edge's monotonic clock (the cars' receive times
 come back converted to it, and on one machine every process shares it):
 
+- ``frame_age``: camera capture -> the frame handed over by the camera source (exposure,
+  transfer, the driver's queue; 0 where a source knows no better than the arrival);
 - ``frame_to_state``: camera capture -> cars' cells known (vision + fleet update);
 - ``state_to_commands``: cells known -> every command of the step ready (masking, grouping,
   inference, safety);
 - ``commands_to_received``: decision -> the last car of the step received its command (from
   the acks' receive times); ``decision_to_acked`` is the same until the last ack is back;
 - ``frame_to_received``: capture of the frame a step decided on -> the last car received its
-  command: the whole loop from the camera to the wheels.
+  command: the whole loop from the camera's exposure to the wheels.
 
 The runtime runs for hours, so totals are fixed-size log histograms (about 1.6 % bin width),
 not growing lists; the live line uses the last few hundred samples. Every record also goes,
@@ -23,12 +25,14 @@ import os
 import sys
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
 SPANS = (
+    "frame_age",
     "frame_to_state",
     "state_to_commands",
     "commands_to_received",
@@ -103,7 +107,9 @@ class Telemetry:
         live: bool = True,
         stream: IO[str] | None = None,
         live_period_s: float = 1.0,
+        tap: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
+        """``tap`` is given every record as it is written (the flight recorder)."""
         self.spans = {name: Histogram() for name in SPANS}
         self.recent = {name: deque(maxlen=400) for name in SPANS}
         self.counts: Counter[str] = Counter()
@@ -120,6 +126,7 @@ class Telemetry:
         self._period_ns = int(live_period_s * 1e9)
         self._next_live_ns = self.started_ns + self._period_ns
         self._steps_at_live = 0
+        self._tap = tap
 
     def _span(self, name: str, ns: int | None) -> None:
         if ns is not None and ns >= 0:
@@ -127,19 +134,33 @@ class Telemetry:
             self.recent[name].append(ns)
 
     def _write(self, record: dict[str, Any]) -> None:
+        if self._tap is not None:
+            self._tap(record)
         if self._file is not None:
             self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
 
-    def frame(self, index: int, captured_ns: int, state_ns: int, seen: int, dropped: int) -> None:
-        """A frame was turned into cells (``state_ns``: when they were known)."""
+    def frame(
+        self,
+        index: int,
+        captured_ns: int,
+        state_ns: int,
+        seen: int,
+        dropped: int,
+        arrived_ns: int | None = None,
+    ) -> None:
+        """A frame was turned into cells (``state_ns``: when they were known); it reached the
+        edge's camera source at ``arrived_ns`` (None: at capture)."""
         self.counts["frames"] += 1
         self.counts["frames_dropped"] = dropped
+        age = None if arrived_ns is None else arrived_ns - captured_ns
+        self._span("frame_age", age)
         self._span("frame_to_state", state_ns - captured_ns)
         self._write(
             {
                 "kind": "frame",
                 "index": index,
                 "t_ns": captured_ns,
+                "age_ns": age,
                 "frame_to_state_ns": state_ns - captured_ns,
                 "seen": seen,
             }
@@ -156,7 +177,7 @@ class Telemetry:
             self.counts[key] += record.get(key, 0)
         for car, outcome in record.get("outcomes", {}).items():
             self.per_car.setdefault(int(car), Counter())[outcome] += 1
-        for name in SPANS[1:]:
+        for name in SPANS[2:]:
             self._span(name, record.get(f"{name}_ns"))
         self._write({"kind": "step", **record})
         now_ns = record.get("t_ns", time.monotonic_ns())

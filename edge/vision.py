@@ -137,6 +137,8 @@ class Scene:
     cells: dict[str, frozenset[tuple[int, int]]]
     vision_ns: int
     """Time `Vision.process` spent on this frame."""
+    t_arrival_ns: int | None = None
+    """When the camera source handed the frame over (its age: this minus the capture)."""
 
 
 @dataclass
@@ -585,4 +587,5 @@ class Vision:
             cars=sightings,
             cells=cells,
             vision_ns=time.perf_counter_ns() - t0,
+            t_arrival_ns=frame.t_arrival_ns,
         )

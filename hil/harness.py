@@ -1,7 +1,8 @@
 """udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
-        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] --report out/hil
+        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] [--camera gige] [--record] \\
+        --report out/hil
 
 starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback UDP, the
 virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
@@ -10,6 +11,14 @@ seconds), applies the fault spec (:mod:`udan.hil.faults`) through the world's co
 stops both and writes the report (:mod:`udan.hil.report`): the edge's spans and deadline counts, the
 cars' own counters, the world's collisions, and the score table through the full loop beside
 the pure simulation of the same policy on the same layouts.
+
+``--camera gige`` puts a real GigE Vision stream between the world and the edge: the virtual
+camera's frames are served by Aravis's fake GigE camera on loopback (``python -m
+udan.hil.gige``) and the edge reads ``aravis://127.0.0.1`` in the same mode; the fault spec can
+then drop its stream packets, hold frames, or unplug it for a while. ``--record`` has the edge
+write its flight recording (``run.mcap``) and the world where every car really was
+(``truth.jsonl``); the report then checks every confident sighting of the recording against
+it (:mod:`udan.hil.truth`).
 
 Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
 parse, a missing model) is one line on stderr and exit code 2, and every process the harness
@@ -50,6 +59,10 @@ TASKS = ("find_water",)
 MARKER_BASE = 10
 
 
+DELAY_BLOCK_S = 1.0
+"""``frame_delay`` holds the fake GigE camera's frames in every other block of this long."""
+
+
 class HarnessError(RuntimeError):
     """The loop could not be run; one line."""
 
@@ -82,6 +95,14 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--edge-realtime", action="store_true", help="udan-edge --realtime (needs CAP_SYS_NICE)"
     )
+    run.add_argument(
+        "--camera", choices=("virtual", "gige"), default="virtual",
+        help="the edge reads the virtual camera's shared memory, or a GigE Vision stream of it",
+    )  # fmt: skip
+    run.add_argument(
+        "--record", action="store_true",
+        help="the edge's flight recording (run.mcap) and the world's truth, checked",
+    )  # fmt: skip
     run.add_argument(
         "--edge-perception",
         choices=("process", "thread"),
@@ -174,6 +195,8 @@ class Loop:
             cmd += ["--episodes-per-cell", str(a.episodes)]
         if a.video:
             cmd += ["--video", str(self.folder / "run.mp4")]
+        if a.record:
+            cmd += ["--truth", str(self.folder / "truth.jsonl")]
         proc = self._spawn("world", cmd)
         line = proc.stdout.readline() if proc.stdout else ""
         try:
@@ -185,11 +208,30 @@ class Loop:
                 f"the HIL world did not start; see {self.folder / 'world.log'}"
             ) from None
 
+    def start_gige(self) -> None:
+        """The fake GigE camera serving the virtual camera on loopback; waits for it."""
+        camera = self.faults.camera
+        cmd = [
+            sys.executable, "-m", "udan.hil.gige", "--camera-name", self.camera,
+            "--lost-ratio", str(camera.get("lost_ratio", 0.0)),
+            "--delay-ms", str(camera.get("delay_ms", 0.0)),
+            "--delay-block-s", str(DELAY_BLOCK_S),
+        ]  # fmt: skip
+        proc = self._spawn("gige", cmd)
+        line = proc.stdout.readline() if proc.stdout else ""
+        if not line.startswith("{"):
+            raise HarnessError(f"the fake GigE camera did not start; see {self.folder}/gige.log")
+
+    def camera_url(self) -> str:
+        if self.args.camera == "virtual":
+            return f"virtual://{self.camera}"
+        return f"aravis://127.0.0.1?width=1920&height=1200&fps={self.args.fps:g}"
+
     def start_edge(self, control_port: int) -> subprocess.Popen:
         a = self.args
         edge = Path(sys.executable).with_name("udan-edge")
         cmd = [
-            str(edge), "--camera", f"virtual://{self.camera}", "--model", str(a.model),
+            str(edge), "--camera", self.camera_url(), "--model", str(a.model),
             "--fleet", str(self.fleet), "--listen", f"127.0.0.1:{self.edge_port}",
             "--world", f"127.0.0.1:{control_port}", "--episode-steps", str(a.episode_steps),
             "--report", str(self.folder / "edge.json"),
@@ -199,6 +241,8 @@ class Loop:
             cmd += ["--duration", str(a.duration)]
         if a.edge_realtime:
             cmd.append("--realtime")
+        if a.record:
+            cmd += ["--record", str(self.folder / "run.mcap")]
         cmd += ["--perception", a.edge_perception]
         return self._spawn("edge", cmd)
 
@@ -220,6 +264,16 @@ class Loop:
                 self.events_done.append(
                     {"kind": "forge", "at_s": event.at_s, "t_ns": now_ns, **sent}
                 )
+                continue
+            if event.kind == "unplug":
+                self.procs["gige"].kill()  # a camera unplugged says nothing first
+                self.procs["gige"].wait()
+                await asyncio.sleep(event.seconds or 0.0)
+                self.start_gige()
+                self.events_done.append(
+                    {"kind": "unplug", "at_s": event.at_s, "t_ns": now_ns,
+                     "back_ns": time.monotonic_ns()}
+                )  # fmt: skip
                 continue
             request: dict[str, Any] = {"op": event.kind}
             if event.car is not None:
@@ -267,6 +321,8 @@ async def run_loop(args: argparse.Namespace, folder: Path, faults: FaultPlan) ->
     world_summary: dict[str, Any] | None = None
     try:
         control = ("127.0.0.1", loop.start_world())
+        if args.camera == "gige":
+            loop.start_gige()
         edge = loop.start_edge(control[1])
         injector = asyncio.ensure_future(loop.apply_faults(control))
         deadline = None if args.timeout is None else time.monotonic() + args.timeout
@@ -290,12 +346,29 @@ async def run_loop(args: argparse.Namespace, folder: Path, faults: FaultPlan) ->
     edge_report_path = folder / "edge.json"
     if not edge_report_path.is_file():
         raise HarnessError(f"udan-edge wrote no report (exit {exits.get('edge')}); see edge.log")
-    return {
+    result = {
         "edge": json.loads(edge_report_path.read_text()),
         "world": world_summary or {},
         "exits": exits,
         "events": loop.events_done,
     }
+    if args.record:
+        result["sightings"] = check_recording(args, folder)
+    return result
+
+
+def check_recording(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
+    """The edge's recorded sightings against the world's truth (the fake GigE camera's picture
+    may be up to two frame periods older than its timestamp)."""
+    from udan.edge.flightlog import FlightLogError, read_flight_log
+    from udan.hil.truth import Truth, check_sightings
+
+    try:
+        log = read_flight_log(folder / "run.mcap")
+    except FlightLogError as err:
+        return {"error": str(err)}
+    lag_ns = 0 if args.camera == "virtual" else round(2e9 / args.fps)
+    return check_sightings(log, Truth(folder / "truth.jsonl"), lag_ns)
 
 
 def _check(args: argparse.Namespace) -> FaultPlan:
@@ -310,6 +383,8 @@ def _check(args: argparse.Namespace) -> FaultPlan:
     if not args.model.is_file():
         raise HarnessError(f"model {args.model}: no such file")
     faults = parse_faults(args.faults)
+    if args.camera != "gige" and (faults.camera or any(e.kind == "unplug" for e in faults.events)):
+        raise HarnessError("gige_loss, frame_delay and unplug are faults of --camera gige")
     try:
         args.report.mkdir(parents=True, exist_ok=True)
         probe = args.report / ".write-test"

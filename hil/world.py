@@ -119,6 +119,11 @@ class HilWorld:
         self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0}
         self.listener: Callable[[Scene], None] | None = None
         """Called with the new :meth:`scene` after every change (the camera process's mirror)."""
+        self.history: list[tuple[int, dict[int, Cell], dict[int, tuple[Cell, Cell, int]]]] = []
+        """Every change, once :attr:`keep_history` is set: (when, every car's cell, the moves in
+        progress), the truth a recording's sightings are checked against
+        (:mod:`udan.hil.truth`)."""
+        self.keep_history = False
         self._lock = threading.Lock()
 
     def scene(self) -> Scene:
@@ -134,8 +139,23 @@ class HilWorld:
             self.layout, self.pose, self.motion = layout, pose, motion
 
     def _changed(self) -> None:
+        scene = self.scene()
+        if self.keep_history:
+            self.history.append((time.monotonic_ns(), scene[1], scene[2]))
         if self.listener is not None:
-            self.listener(self.scene())
+            self.listener(scene)
+
+    def write_history(self, path: Path) -> None:
+        """The history as JSON lines: ``{"t_ns", "pose": {car: cell}, "motion": {car: [from,
+        to, start_ns]}}``."""
+        with path.open("w", encoding="utf-8") as out:
+            for t_ns, pose, motion in self.history:
+                record = {
+                    "t_ns": t_ns,
+                    "pose": {str(c): list(p) for c, p in pose.items()},
+                    "motion": {str(c): [list(a), list(b), t0] for c, (a, b, t0) in motion.items()},
+                }
+                out.write(json.dumps(record, separators=(",", ":")) + "\n")
 
     # -- the firmware's World --------------------------------------------------------------
     def begin(self, car_id: int, pose: Cell, action: int) -> None:
@@ -393,6 +413,7 @@ class WorldServer:
         self.geometry = ArenaGeometry()
         markers = {s.car_id: s.marker for s in self.specs}
         self.world = HilWorld(self.geometry, markers, args.cell_time_ms / 1000)
+        self.world.keep_history = args.truth is not None
         self.episodes = plan(
             parse_range(args.agents, "agents"),
             parse_range(args.obstacles, "obstacles"),
@@ -505,6 +526,8 @@ class WorldServer:
             for car in self.cars.values():
                 car.close()
             control.close()
+            if args.truth is not None:
+                self.world.write_history(args.truth)
         return {"world": self.world.state()["counts"], **camera, "cars": counters}
 
 
@@ -526,6 +549,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")
     p.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma (grey levels)")
     p.add_argument("--blur", type=float, default=0.6, help="blur sigma (pixels)")
+    p.add_argument("--truth", type=Path, help="write where every car was, when, here at exit")
     return p
 
 
