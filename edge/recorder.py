@@ -210,7 +210,8 @@ class FrameTaker:
         self._taken: queue.Queue[tuple[int, int, np.ndarray, bool] | None] = queue.Queue()
         self._queued_bytes = 0
         self._lock = threading.Lock()
-        self._written: deque[int] = deque(maxlen=256)  # capture times taken lately
+        self._written = {lossless: deque(maxlen=256) for lossless in (True, False)}
+        """Capture times taken lately, losslessly or at all."""
         self._taker = threading.Thread(target=self._take, name="frames", daemon=True)
         self._writer = threading.Thread(target=self._write, name="frame writer", daemon=True)
         self._taker.start()
@@ -273,14 +274,17 @@ class FrameTaker:
         if got is None:
             return False
         image, t_ns = got
-        if t_ns in self._written:
-            return True
+        lossless = decided or self.quality is None
+        if t_ns in self._written[lossless]:
+            return True  # taken already (a decided frame may have gone out as a JPEG as well)
         with self._lock:
             if self._queued_bytes + image.nbytes > self.QUEUE_BYTES:
                 self.skipped += not decided
                 return False
             self._queued_bytes += image.nbytes
-        self._written.append(t_ns)
+        if lossless:
+            self._written[True].append(t_ns)
+        self._written[False].append(t_ns)
         self._taken.put((t_ns, index or number, image, decided))
         return True
 

@@ -13,10 +13,10 @@ once, at a time counted from the first episode's start:
 
 Faults of the GigE Vision camera (``udan-hil run --camera gige``, :mod:`udan.hil.gige`), from
 the start: ``gige_loss=P`` drops each stream packet with probability P (lost packets are not
-resent: the frame arrives incomplete); ``frame_delay=D`` holds the frames of every other second
-(on the monotonic clock) for D between their timestamp and their first packet, so frames held
-and not held can be compared in one run. And once: ``unplug=D@T``: the camera goes away at T and
-comes back D later.
+resent: the frame arrives incomplete); ``frame_delay=D`` holds the frames of every other tenth
+of a second (on the monotonic clock) for D between their timestamp and their first packet, so
+frames held and not held can be compared in one run. And once: ``unplug=D@T``: the camera goes
+away at T and comes back D later.
 
 Durations take ``ms`` or ``s``; probabilities are in [0, 1].
 """

@@ -44,6 +44,7 @@ import numpy as np
 
 from udan.edge.camera import CameraError, attach_frames
 from udan.envs.errors import OneLineParser
+from udan.hil.world import CAMERA_NICENESS
 
 PROG = "python -m udan.hil.gige"
 LOCK = Path(tempfile.gettempdir()) / "udan-gige-loopback.lock"
@@ -205,6 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: error: --lost-ratio in [0, 1], --delay-ms and --delay-block-s >= 0",
               file=sys.stderr)  # fmt: skip
         return 2
+    os.nice(CAMERA_NICENESS)  # a camera: below the cars and the edge, as the renderer
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -128,3 +128,28 @@ def test_the_child_never_outlives_a_killed_parent(echo_module, tmp_path):
         time.sleep(0.05)
     os.kill(child, signal.SIGKILL)
     raise AssertionError("the child outlived its killed parent")
+
+
+# A child with something to say at the end: how many records it read, and their sum.
+COUNTER = textwrap.dedent(
+    """
+    import sys
+    from udan.edge.sidecar import Inlet, ignore_interrupts
+    ignore_interrupts()
+    inlet = Inlet(int(sys.argv[2]))
+    records = list(inlet)
+    inlet.reply({"read": len(records), "sum": sum(records)})
+    inlet.close()
+    """
+)
+
+
+def test_the_child_replies_and_close_collects_it(tmp_path, monkeypatch):
+    (tmp_path / "sidecar_counter.py").write_text(COUNTER)
+    monkeypatch.setenv("PYTHONPATH", f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    outlet = Outlet("sidecar_counter")
+    for k in range(100):
+        assert outlet.offer(k)
+    assert outlet.replies == []
+    assert outlet.close() == "exit code 0"
+    assert outlet.replies == [{"read": 100, "sum": 4950}]
