@@ -36,7 +36,9 @@ import importlib
 import mmap
 import os
 import re
+import shutil
 import struct
+import subprocess
 import threading
 import time
 from collections import deque
@@ -194,6 +196,15 @@ class CameraMode:
     clock: str = "arrival"
     """Where this source's capture times come from (what ``auto`` came to)."""
 
+    def summary(self) -> str:
+        """One line: ``1920x1200 at 40 fps, Mono8, exposure 2000 us, gain 0; capture times:
+        device``."""
+        parts = [f"{self.width}x{self.height}" + (f" at {self.fps:g} fps" if self.fps else "")]
+        parts += [self.format] if self.format else []
+        parts += [f"exposure {self.exposure_us:g} us"] if self.exposure_us is not None else []
+        parts += [f"gain {self.gain:g}"] if self.gain is not None else []
+        return ", ".join(parts) + f"; capture times: {self.clock}"
+
 
 MODE_TOLERANCE = 0.01
 """Relative difference between an asked and a granted value (frame rate, exposure, gain) that
@@ -323,6 +334,10 @@ class CameraSource:
     def reopen(self) -> None:
         """Open a lost camera again (raises `CameraError` while it is not back)."""
         raise CameraError(f"{self.url} cannot be reopened")
+
+    def describe(self) -> dict[str, Any]:
+        """The modes and controls the camera offers (the probe's answer); none here."""
+        return {}
 
     def _read(self) -> np.ndarray | None:
         """Block until the next image (any channel count, uint8); None at the end."""
@@ -533,6 +548,18 @@ class DeviceSource(_CaptureSource):
         self._cap.release()
         self._cap = self._open()
         self._configure()
+
+    def describe(self) -> dict[str, Any]:
+        """The formats, sizes, frame rates and controls the driver lists, as ``v4l2-ctl``
+        (Debian's v4l-utils) prints them: OpenCV cannot enumerate them."""
+        tool = shutil.which("v4l2-ctl")
+        if tool is None:
+            return {"modes": "install v4l-utils (v4l2-ctl) to list this camera's modes"}
+        listed = subprocess.run(
+            [tool, "-d", self.url, "--list-formats-ext", "--list-ctrls"],
+            capture_output=True, text=True, timeout=10,
+        )  # fmt: skip
+        return {"v4l2-ctl": (listed.stdout or listed.stderr).strip()}
 
 
 class VideoFileSource(_CaptureSource):

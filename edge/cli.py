@@ -238,7 +238,7 @@ def _recording_meta(
         "calibration_sha256": None
         if calibration is None
         else hashlib.sha256(Path(calibration).read_bytes()).hexdigest(),
-        "camera": perception.camera,
+        "camera": perception.camera_info,
         "fleet": [
             {
                 "id": c.car_id,
@@ -284,7 +284,7 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         if perception is not None:
             perception.close()
         raise
-    for warning in perception.camera.get("warnings", []):
+    for warning in perception.camera_info.get("warnings", []):
         print(f"{PROG}: warning: camera {args.camera}: {warning}", file=sys.stderr)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     recorder = None

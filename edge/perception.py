@@ -211,7 +211,7 @@ class Perception(ABC):
 
     @property
     @abstractmethod
-    def camera(self) -> dict[str, Any]:
+    def camera_info(self) -> dict[str, Any]:
         """The camera as opened (:func:`camera_facts`); empty until :meth:`wait_ready`."""
 
     @abstractmethod
@@ -274,7 +274,7 @@ class ThreadPerception(Perception):
         return self.grabber.counters()
 
     @property
-    def camera(self) -> dict[str, Any]:
+    def camera_info(self) -> dict[str, Any]:
         return camera_facts(self.grabber.source)
 
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
@@ -327,9 +327,9 @@ class ProcessPerception(Perception):
         """Start the perception process (it opens ``camera`` and builds its vision while the
         caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
         it analysed there for the flight recorder (:class:`FrameRing`)."""
-        self.url = camera
+        self.camera = camera
         self.sweep_frames = 0
-        self._camera: dict[str, Any] = {}
+        self._camera_info: dict[str, Any] = {}
         self._counts: dict[str, int] = {"captured": 0, "dropped": 0}
         self._news: list[tuple[str, dict[str, Any]]] = []
         self._superseded = 0  # scenes superseded here before the loop took them
@@ -354,7 +354,7 @@ class ProcessPerception(Perception):
             first = self._sock.recv(MESSAGE_BYTES)
         except TimeoutError:
             raise PerceptionError(
-                f"the perception process did not open {self.url} within {START_TIMEOUT_S:g} s"
+                f"the perception process did not open {self.camera} within {START_TIMEOUT_S:g} s"
             ) from None
         if not first:
             self._stream_ended = True
@@ -366,7 +366,7 @@ class ProcessPerception(Perception):
             self._stream_ended = True
             raise _ERRORS.get(body[0], PerceptionError)(body[1])
         self._sock.setblocking(False)
-        self.sweep_frames, self._camera = int(body[0]), body[1]
+        self.sweep_frames, self._camera_info = int(body[0]), body[1]
 
     @property
     def pid(self) -> int:
@@ -385,8 +385,8 @@ class ProcessPerception(Perception):
         return {**self._counts, "dropped": self.dropped}
 
     @property
-    def camera(self) -> dict[str, Any]:
-        return self._camera
+    def camera_info(self) -> dict[str, Any]:
+        return self._camera_info
 
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         news, self._news = self._news, []

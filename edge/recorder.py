@@ -83,6 +83,11 @@ class FlightRecorder:
         self._pending: list[tuple] = [("meta", meta)]
         self._seq = 0
 
+    @property
+    def pid(self) -> int:
+        """The recorder process's."""
+        return self._outlet.proc.pid
+
     def log(self, call: str, *inputs: Any) -> None:
         """The core's journal: keep the entry (sent by :meth:`flush`)."""
         self._pending.append(("core", self._seq, call, inputs))

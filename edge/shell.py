@@ -121,7 +121,7 @@ class EdgeShell:
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
         perception = self.perception
-        report["camera"] = {**perception.counters, **perception.camera}
+        report["camera"] = {**perception.counters, **perception.camera_info}
         report["gc"] = {
             "collections": self._collections,
             "longest_ms": round(self._longest_collection_ns / 1e6, 3),

@@ -11,6 +11,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -137,6 +138,22 @@ def test_the_mode_asked_in_the_url_is_set_read_back_and_frames_arrive_intact():
     assert described["vendor"] == "Aravis" and described["model"] == "Fake"
     assert "Mono8" in described["formats"] and described["width"][:2] == [1, 2048]
     assert described["fps"] == [0.1, 1000.0] and described["clocks"] == ["realtime", "arrival"]
+
+
+def test_the_probe_lists_the_cameras_modes_and_controls():
+    calibrate = str(Path(sys.executable).with_name("udan-calibrate"))
+    with gige():
+        done = subprocess.run(
+            [calibrate, "probe", "--camera", "aravis://127.0.0.1?width=800&height=600&fps=30"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0] == "camera aravis://127.0.0.1"
+    assert lines[1].startswith("  mode: 800x600 at 30") and "Mono8" in lines[1]
+    assert lines[2] == "  asked: width=800&height=600&fps=30"
+    assert "  formats: ['BayerBG8', 'BayerGB8', 'BayerGR8', 'BayerRG8', 'Mono8'" in done.stdout
+    assert "  fps: [0.1, 1000.0]" in lines and "  clocks: ['realtime', 'arrival']" in lines
 
 
 @pytest.mark.parametrize(
