@@ -157,6 +157,10 @@ def _parser() -> argparse.ArgumentParser:
         "--vision", action="store_true",
         help="with --replay: run the vision again on the recorded frames and compare",
     )  # fmt: skip
+    rec.add_argument(
+        "--still", type=Path, help="with --replay --vision: a recorded frame, its sightings drawn "
+        "(PNG)",
+    )  # fmt: skip
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
@@ -447,7 +451,7 @@ def _replay(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     if identical < steps:
         line += f", {steps - identical} differ ({decisions['commands_differing']} commands)"
     if args.vision:
-        vision = report["vision"] = replay_vision(log)
+        vision = report["vision"] = replay_vision(log, args.still)
         lossless = vision["lossless"]
         if lossless["sightings"]:
             line += (
@@ -476,6 +480,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError("--record-rate takes 0-1000 frames a second")
         if args.vision and args.replay is None:
             raise UsageError("--vision goes with --replay")
+        if args.still is not None and not args.vision:
+            raise UsageError("--still goes with --replay --vision")
+        _writable(args.still, "--still")
         if args.realtime:
             _realtime()
         if args.replay is not None:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from udan.edge import flightlog as fl
@@ -214,8 +215,39 @@ def _spread(values: list[float]) -> dict[str, float | None]:
     }
 
 
-def replay_vision(log: fl.FlightLog) -> dict[str, Any]:
-    """The vision again on the recorded frames, its sightings against the recorded ones."""
+STILL_WIDTH = 960
+"""Width of ``--still``'s picture."""
+
+
+def draw_still(
+    image: np.ndarray, vision: Vision, recorded: list[dict[str, Any]], scene: Scene
+) -> np.ndarray:
+    """A recorded frame with each recorded sighting's cell outlined (green where the vision
+    again agrees, red where not) and its marker and cell written beside it; `STILL_WIDTH`
+    wide."""
+    out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    cell_m = vision.geometry.cell_m
+    for sighting in recorded:
+        row, col = sighting["cell"]
+        square = np.array([[col, row], [col + 1, row], [col + 1, row + 1], [col, row + 1]])
+        corners = vision.fit.to_image(square * cell_m).astype(np.int32)
+        again = scene.cars.get(sighting["marker"])
+        colour = (
+            (40, 200, 40) if again is not None and list(again.cell) == [row, col] else (40, 40, 230)
+        )
+        cv2.polylines(out, [corners], True, colour, max(2, image.shape[0] // 300))
+        x, y = corners.min(0)
+        label = f"{sighting['marker']}: {row},{col}"
+        size = image.shape[0] / 800
+        cv2.putText(out, label, (int(x), int(y) - 8), cv2.FONT_HERSHEY_SIMPLEX, size, colour,
+                    max(2, image.shape[0] // 400))  # fmt: skip
+    height = round(out.shape[0] * STILL_WIDTH / out.shape[1])
+    return cv2.resize(out, (STILL_WIDTH, height), interpolation=cv2.INTER_AREA)
+
+
+def replay_vision(log: fl.FlightLog, still: Path | None = None) -> dict[str, Any]:
+    """The vision again on the recorded frames, its sightings against the recorded ones; with
+    ``still``, the lossless frame showing the most cars drawn there (:func:`draw_still`)."""
     recorded = {e.message["t_capture_ns"]: e.message for e in log.entries if e.call == "see"}
     kinds = ("lossless", "lossy")
     counts = {kind: dict.fromkeys(("frames", "sightings", "same_cell", "missing", "extra",
@@ -223,6 +255,7 @@ def replay_vision(log: fl.FlightLog) -> dict[str, Any]:
     offsets: dict[str, list[float]] = {kind: [] for kind in kinds}
     turns: dict[str, list[float]] = {kind: [] for kind in kinds}
     wrong: list[dict[str, Any]] = []
+    best = 0  # cars in the still drawn so far
     with tempfile.TemporaryDirectory(prefix="udan-replay-") as folder:
         vision = vision_settings(log, Path(folder)).build()
         index = 0
@@ -232,6 +265,9 @@ def replay_vision(log: fl.FlightLog) -> dict[str, Any]:
             if seen is None:
                 continue
             fmt = kinds[not lossless]
+            if still is not None and lossless and len(seen["cars"]) > best:
+                best = len(seen["cars"])
+                cv2.imwrite(str(still), draw_still(image, vision, seen["cars"], scene))
             c = counts[fmt]
             c["frames"] += 1
             for old in seen["cars"]:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -158,9 +159,11 @@ def test_a_replay_with_another_model_shows_what_it_would_have_done(
 
 
 def test_the_vision_again_on_the_recorded_frames_agrees(recorded: Recorded, tmp_path: Path) -> None:
-    done = _edge("--replay", str(recorded.mcap), "--vision",
+    done = _edge("--replay", str(recorded.mcap), "--vision", "--still", str(tmp_path / "s.png"),
                  "--report", str(tmp_path / "replay.json"))  # fmt: skip
     assert done.returncode == 0, done.stderr
+    still = cv2.imread(str(tmp_path / "s.png"))
+    assert still.shape[1] == 960 and still.std() > 10  # a frame, drawn on
     vision = json.loads((tmp_path / "replay.json").read_text())["vision"]
     lossless = vision["lossless"]
     assert lossless["frames"] > 0.8 * recorded.report["counts"]["steps"]
@@ -193,6 +196,7 @@ def test_bad_recordings_and_replays_are_one_line_and_exit_2(
         (["--replay", str(recorded.mcap), "--model", str(hidden)], "not an arena task the cars"),
         (["--replay", str(recorded.mcap), "--sim"], "--replay drives no camera and no car"),
         (["--sim", "--vision"], "--vision goes with --replay"),
+        (["--replay", str(recorded.mcap), "--still", "s.png"], "--still goes with --replay"),
         (["--sim", "--record-quality", "0"], "--record-quality 0: a JPEG quality 1-100"),
         (["--sim", "--record", str(tmp_path / "no" / "run.mcap")], "does not exist"),
     ]
