@@ -43,7 +43,7 @@ from udan.edge.perception import FrameRing
 from udan.edge.recorder import DEFAULT_QUALITY, DEFAULT_RATE, FlightRecorder
 from udan.edge.vision import CarSighting, Scene
 from udan.hil.ab import interleave, p99_ms, p99_ratio, sim_block
-from udan.hil.render import CameraModel, Renderer
+from udan.hil.render import CameraModel, Renderer, circling_cars
 
 BLOCKS = int(os.environ.get("BENCH_BLOCKS", "5"))
 BLOCK_S = float(os.environ.get("BENCH_BLOCK_S", "60"))
@@ -104,28 +104,10 @@ def ab(folder: Path) -> dict[str, Any]:
 
 
 # -- 2: the recorder alone on one core -------------------------------------------------------
-def _frames() -> list[np.ndarray]:
-    """Five cars, each going round its own circle once per cycle, one cell across, seen through
-    the HIL camera's sensor noise and blur (noise is what a lossless frame costs)."""
-    geometry = ArenaGeometry()
-    renderer = Renderer(geometry, CameraModel(noise_sigma=2.0, blur_sigma=0.6))
-    cells = {"obstacle": [(4, 4)], "wall": [(0, 1)], "water": [(0, 4)], "target": []}
-    frames = []
-    for f in range(CYCLE):
-        angle = 2 * math.pi * f / CYCLE
-        cars = []
-        for k in range(CARS):
-            cx, cy = geometry.cell_centre(2 + k, 1 + (3 * k) % 7)
-            r = geometry.cell_m / 2
-            cars.append((10 + k, cx + r * math.cos(angle), cy + r * math.sin(angle), angle))
-        frames.append(renderer.render(cars, cells))
-    return frames
-
-
 def _scene(index: int, t_ns: int) -> Scene:
     cars = {
-        10 + k: CarSighting(
-            10 + k, (2 + k, 1 + k), (0.5 + k / 3, 0.7), 0.1 * k, (0.01, -0.02), True, k == 4, 0.006
+        5 + k: CarSighting(
+            5 + k, (2 + k, 1 + k), (0.5 + k / 3, 0.7), 0.1 * k, (0.01, -0.02), True, k == 4, 0.006
         )
         for k in range(CARS)
     }
@@ -212,7 +194,10 @@ def throughput(folder: Path, rate: float, quality: int | None, frames: list[np.n
 
 
 def main() -> int:
-    frames = _frames()
+    # the HIL camera's sensor noise and blur: noise is what a lossless frame costs
+    frames = circling_cars(
+        Renderer(ArenaGeometry(), CameraModel(noise_sigma=2.0, blur_sigma=0.6)), CYCLE, CARS
+    )
     with tempfile.TemporaryDirectory(prefix="udan-bench-recorder-") as tmp:
         folder = Path(tmp)
         alone = {
