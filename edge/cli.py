@@ -450,6 +450,8 @@ def _replay(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     line += f"{identical} as recorded ({share})"
     if identical < steps:
         line += f", {steps - identical} differ ({decisions['commands_differing']} commands)"
+    if decisions["journal_gaps"]:
+        line += f" (the recording misses {decisions['journal_gaps']} of the core's inputs)"
     if args.vision:
         vision = report["vision"] = replay_vision(log, args.still)
         lossless = vision["lossless"]

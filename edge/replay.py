@@ -42,9 +42,6 @@ from udan.edge.geometry import ArenaGeometry
 from udan.edge.perception import VisionSettings
 from udan.edge.vision import Scene, Vision
 
-MAX_LISTED = 50
-"""Differing decisions listed one by one in the report (all are counted)."""
-
 
 class ReplayError(ValueError):
     """A replay that cannot be made (a model for another task); one line."""
@@ -168,7 +165,7 @@ def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, 
         "commands_differing": commands_differing,
         "steps_not_recorded": unexpected,
         "journal_gaps": log.gaps(),
-        "differences": differences[:MAX_LISTED],
+        "differences": differences,
     }
 
 
@@ -295,5 +292,5 @@ def replay_vision(log: fl.FlightLog, still: Path | None = None) -> dict[str, Any
             "offset_mm": _spread(offsets[fmt]),
             "turn_deg": _spread(turns[fmt]),
         }
-    out["cells_differing"] = wrong[:MAX_LISTED]
+    out["cells_differing"] = wrong
     return out
