@@ -7,10 +7,11 @@
    resampling the pairs; the on-time share of each arm; what the recorder wrote (frames, records
    dropped, bytes, and so the size of 10 minutes). ``BENCH_REALTIME=1`` runs the edge with
    ``--realtime`` (needs CAP_SYS_NICE): the on-time target is then 100 %, else 99.9 %.
-2. **The recorder alone on one core**: a feeder publishes rendered 1920x1200 frames into the ring
-   the perception process keeps (:class:`udan.edge.perception.FrameRing`) at 40 FPS and offers
-   the records a 5-car run makes (a scene a frame, a decision every ``DECIDE_EVERY`` frames) to
-   the recorder process, pinned to one core the feeder stays off. At the defaults, and with
+2. **The recorder alone on one core**: a feeder plays the perception process's part for rendered
+   1920x1200 frames at 40 FPS (:class:`udan.edge.perception.FrameRing`: each frame remembered,
+   the decided ones and the previews copied to shared memory) and offers the records a 5-car
+   run makes (a scene a frame, a decision every ``DECIDE_EVERY`` frames) to the recorder
+   process, pinned to one core the feeder stays off. At the defaults, and with
    every frame written losslessly (``--record-rate 40 --record-quality lossless``): frames
    written and missed, records dropped, MB a minute, the recorder's CPU.
 
@@ -39,7 +40,7 @@ from udan.edge.decide import Decision
 from udan.edge.fleet import FleetState
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CommandReport, DispatchReport
-from udan.edge.perception import FrameRing
+from udan.edge.perception import FrameRing, RingSpec
 from udan.edge.recorder import DEFAULT_QUALITY, DEFAULT_RATE, FlightRecorder
 from udan.edge.vision import CarSighting, Scene
 from udan.hil.ab import interleave, p99_ms, p99_ratio, sim_block
@@ -142,10 +143,11 @@ def _cpu_s(pid: int) -> float:
 
 def throughput(folder: Path, rate: float, quality: int | None, frames: list[np.ndarray]) -> dict:
     """The recorder fed a 40 FPS run for ``THROUGHPUT_S`` on a core of its own."""
-    ring = FrameRing(f"udan-bench-ring-{uuid.uuid4().hex[:8]}")
+    spec = RingSpec(f"udan-bench-ring-{uuid.uuid4().hex[:8]}", rate)
+    ring = FrameRing(spec)
     path = folder / f"throughput-{rate:g}-{quality or 'lossless'}.mcap"
     meta = {"bench": "recorder throughput", "fleet": [], "lost_s": 0.5}
-    recorder = FlightRecorder(path, meta, ring=ring.name, rate=rate, quality=quality)
+    recorder = FlightRecorder(path, meta, ring=spec, rate=rate, quality=quality)
     pid = recorder.pid
     cores = sorted(os.sched_getaffinity(0))
     if len(cores) > 1:  # the recorder on the last core, the feeder on the others
@@ -161,7 +163,7 @@ def throughput(folder: Path, rate: float, quality: int | None, frames: list[np.n
             due = start + k * period_ns
             time.sleep(max(0.0, (due - time.monotonic_ns()) / 1e9))
             t_ns = time.monotonic_ns()
-            ring.keep(Frame(frames[k % CYCLE], t_ns, k))
+            ring.analysed(Frame(frames[k % CYCLE], t_ns, k))
             now = t_ns + 5_000_000
             recorder.log("see", now, (1, 2, 3, 4, 5), _scene(k, t_ns))
             recorder.log("due", now, ())
@@ -170,6 +172,7 @@ def throughput(folder: Path, rate: float, quality: int | None, frames: list[np.n
                 recorder.log("decide", now, now + 300_000, state, decision)
                 recorder.log("dispatched", now, report)
                 recorder.log("wait_for_moves", now + 11_000_000)
+                ring.keep(t_ns)  # as the perception does when the edge asks for it
             recorder.flush()
         cpu = _cpu_s(pid) - cpu_before
     finally:

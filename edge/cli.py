@@ -48,6 +48,7 @@ from udan.edge.perception import (
     Perception,
     PerceptionError,
     ProcessPerception,
+    RingSpec,
     ThreadPerception,
     VisionSettings,
 )
@@ -269,7 +270,7 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.calibration,
         {c.marker: c.marker_height_m for c in cars},
     )
-    ring = f"udan-ring-{os.getpid()}" if args.record else None
+    ring = RingSpec(f"udan-ring-{os.getpid()}", args.record_rate) if args.record else None
     # the perception process starts first and opens the camera while the model loads
     perception: Perception | None = None
     if args.perception == "process":

@@ -38,6 +38,7 @@ import socket
 import subprocess
 import sys
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -131,42 +132,94 @@ class VisionSettings:
         )
 
 
-RING_BYTES = 64 << 20
-"""Shared memory for the ring of analysed frames kept for the flight recorder (16 frames of
-1920x1200, 8 of 4K)."""
-RING_MIN_SLOTS = 4
-RING_MAX_SLOTS = 16
+REMEMBERED_BYTES = 40 << 20
+"""Analysed frames the perception remembers (by reference, no copy) for the flight recorder,
+in bytes: 16 frames of 1920x1200 (0.4 s at 40 FPS), 4 of 4K; a decision's frame is asked for
+within a few tens of milliseconds."""
+REMEMBERED_MIN, REMEMBERED_MAX = 4, 16
+DECIDED_SLOTS = 8
+"""Decided frames the shared memory holds for the recorder (1.6 s of 5 decisions a second)."""
+PREVIEW_SLOTS = 4
+
+
+@dataclass(frozen=True)
+class RingSpec:
+    """Where the perception puts frames for the flight recorder, and how many besides the
+    decided ones (a second)."""
+
+    name: str
+    rate: float = 0.0
+
+    @property
+    def decided(self) -> str:
+        """Shared memory of the frames decisions used."""
+        return f"{self.name}-decided"
+
+    @property
+    def previews(self) -> str:
+        """Shared memory of the other frames, ``rate`` a second."""
+        return f"{self.name}-preview"
 
 
 class FrameRing:
-    """The analysed frames, for the flight recorder (:mod:`udan.edge.recorder`): each one is
-    copied into the shared memory ``name`` after its scene has gone, where the recorder takes
-    the ones a decision used. Made at the first frame, at that frame's size (a frame of another
+    """The analysed frames, for the flight recorder (:mod:`udan.edge.recorder`). The last few
+    are remembered by reference: the vision has read them and nothing writes to them, so this
+    costs no copy. The frame a decision used is copied into the shared memory
+    :attr:`RingSpec.decided` when the edge says so (:meth:`keep`, a few times a second), and one
+    frame every ``1 / rate`` s into :attr:`RingSpec.previews` as it is analysed: a few copies a
+    second, not one a frame. Made at the first frame, at that frame's size (a frame of another
     size is not kept); removed on close."""
 
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.kept = 0
-        self._writer: FrameWriter | None = None
+    def __init__(self, spec: RingSpec) -> None:
+        self.spec = spec
+        self.missed = 0
+        """Frames asked for that were no longer remembered."""
+        self._frames: deque[Frame] = deque(maxlen=REMEMBERED_MIN)
+        self._decided: FrameWriter | None = None
+        self._previews: FrameWriter | None = None
+        self._kept = 0
+        self._previewed = 0
+        self._preview_due_ns = 0
+        self._period_ns = round(1e9 / spec.rate) if spec.rate > 0 else 0
 
-    @staticmethod
-    def slots(width: int, height: int) -> int:
-        """Frames the ring holds at this size."""
-        return max(RING_MIN_SLOTS, min(RING_MAX_SLOTS, RING_BYTES // max(1, width * height)))
-
-    def keep(self, frame: Frame) -> None:
+    def analysed(self, frame: Frame) -> None:
+        """A frame the vision is done with: remember it; copy it for the previews when due."""
         image = frame.image
-        if self._writer is None:
+        if self._decided is None:
             height, width = image.shape
-            self._writer = FrameWriter(self.name, width, height, self.slots(width, height))
-        layout = self._writer.layout
-        if image.shape == (layout.height, layout.width):
-            self.kept += 1
-            self._writer.publish(self.kept, frame.t_capture_ns, image)
+            remembered = REMEMBERED_BYTES // max(1, width * height)
+            self._frames = deque(maxlen=max(REMEMBERED_MIN, min(REMEMBERED_MAX, remembered)))
+            self._decided = FrameWriter(self.spec.decided, width, height, DECIDED_SLOTS)
+            self._previews = FrameWriter(self.spec.previews, width, height, PREVIEW_SLOTS)
+        layout = self._decided.layout
+        if image.shape != (layout.height, layout.width):
+            return
+        self._frames.append(frame)
+        if self._period_ns and frame.t_capture_ns >= self._preview_due_ns:
+            self._preview_due_ns = max(self._preview_due_ns + self._period_ns, frame.t_capture_ns)
+            self._previewed += 1
+            self._previews.publish(self._previewed, frame.t_capture_ns, image)
+
+    def keep(self, t_capture_ns: int) -> bool:
+        """Copy the frame captured at ``t_capture_ns`` (a decision used it) for the recorder;
+        False if it is no longer remembered."""
+        frame = next((f for f in self._frames if f.t_capture_ns == t_capture_ns), None)
+        if frame is None or self._decided is None:
+            self.missed += 1
+            return False
+        self._kept += 1
+        self._decided.publish(self._kept, t_capture_ns, frame.image)
+        return True
 
     def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
+        for writer in (self._decided, self._previews):
+            if writer is not None:
+                writer.close()
+
+
+def ring_counts(ring: FrameRing | None) -> dict[str, int]:
+    """The flight recorder's frames the perception no longer remembered when asked."""
+    return {} if ring is None else {"not_remembered": ring.missed}
 
 
 def camera_facts(source: CameraSource) -> dict[str, Any]:
@@ -206,8 +259,9 @@ class Perception(ABC):
     @property
     @abstractmethod
     def counters(self) -> dict[str, int]:
-        """Frames captured and dropped, and what the camera source skipped (stale frames,
-        incomplete GenICam buffers)."""
+        """Frames captured and dropped, what the camera source skipped (stale frames,
+        incomplete GenICam buffers), and decided frames the flight recorder asked for too late
+        (``not_remembered``)."""
 
     @property
     @abstractmethod
@@ -217,6 +271,11 @@ class Perception(ABC):
     @abstractmethod
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         """What happened to the camera since the last call ("camera_lost", "camera_back")."""
+
+    @abstractmethod
+    def keep_frame(self, t_capture_ns: int) -> None:
+        """A decision used the frame captured at ``t_capture_ns``: copy it for the flight
+        recorder (:class:`FrameRing`; nothing without one). Never waits."""
 
     @abstractmethod
     def wait_ready(self) -> None:
@@ -271,7 +330,7 @@ class ThreadPerception(Perception):
 
     @property
     def counters(self) -> dict[str, int]:
-        return self.grabber.counters()
+        return {**self.grabber.counters(), **ring_counts(self.ring)}
 
     @property
     def camera_info(self) -> dict[str, Any]:
@@ -287,8 +346,12 @@ class ThreadPerception(Perception):
     def _analyse(self, frame: Frame) -> Scene:
         scene = self.vision.process(frame)
         if self.ring is not None:
-            self.ring.keep(frame)
+            self.ring.analysed(frame)
         return scene
+
+    def keep_frame(self, t_capture_ns: int) -> None:
+        if self.ring is not None:  # in the vision's thread: the loop touches no pixel
+            self._pool.submit(self.ring.keep, t_capture_ns)
 
     def wait_ready(self) -> None:
         """Nothing to wait for: the camera was opened and the vision built by the caller."""
@@ -322,7 +385,10 @@ class ProcessPerception(Perception):
     """The camera and the vision in a perception process of their own."""
 
     def __init__(
-        self, camera: str, settings: VisionSettings = VisionSettings(), ring: str | None = None
+        self,
+        camera: str,
+        settings: VisionSettings = VisionSettings(),
+        ring: RingSpec | None = None,
     ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
         caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
@@ -341,10 +407,11 @@ class ProcessPerception(Perception):
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
         self._buffer = bytearray(MESSAGE_BYTES)
+        self._ring = ring
         args = ["--camera", camera, "--vision", settings.to_json()]
-        self._sock, self._proc = spawn(
-            "udan.edge.perception", [*args, "--ring", ring] if ring else args
-        )
+        if ring is not None:
+            args += ["--ring", ring.name, "--ring-rate", str(ring.rate)]
+        self._sock, self._proc = spawn("udan.edge.perception", args)
 
     def wait_ready(self) -> None:
         if self.sweep_frames:
@@ -391,6 +458,10 @@ class ProcessPerception(Perception):
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         news, self._news = self._news, []
         return news
+
+    def keep_frame(self, t_capture_ns: int) -> None:
+        if self._ring is not None and not self._stream_ended:
+            self._send(("keep", t_capture_ns))
 
     @property
     def ended(self) -> bool:
@@ -527,7 +598,7 @@ class _Server:
 
     def send(self, *message: Any) -> None:
         """A message with the counts so far; a scene the socket has no room for is dropped."""
-        counts = self.grabber.counters()
+        counts = {**self.grabber.counters(), **ring_counts(self.ring)}
         counts["dropped"] += self.unsent
         try:
             self.sock.send(pickle.dumps((*message, counts)))
@@ -539,6 +610,8 @@ class _Server:
         kind, *body = pickle.loads(data) if data else ("stop",)
         if kind == "skip_before":
             self.not_before_ns = body[0]
+        elif kind == "keep" and self.ring is not None:
+            self.ring.keep(body[0])
         elif kind == "stop":
             self.stopping.set()
 
@@ -574,7 +647,7 @@ class _Server:
                 self.send("taken", frame.index, frame.t_capture_ns)
                 self.send("scene", self.vision.process(frame))
                 if self.ring is not None:
-                    self.ring.keep(frame)
+                    self.ring.analysed(frame)
         finally:
             stopping.cancel()
             loop.remove_reader(self.sock.fileno())
@@ -584,10 +657,11 @@ def _error_kind(err: Exception) -> str:
     return "camera" if isinstance(err, CameraError) else "vision"
 
 
-def serve(fd: int, camera: str, settings: VisionSettings, ring: str | None = None) -> int:
+def serve(fd: int, camera: str, settings: VisionSettings, ring: RingSpec | None = None) -> int:
     """The perception process: open ``camera`` and build the vision, say "ready" with the
     camera's granted mode (or the error, one line), wait for "start", then send scenes until
-    told to stop or the edge goes away; with ``ring``, keep the analysed frames there."""
+    told to stop or the edge goes away; with ``ring``, keep frames for the flight recorder
+    (:class:`FrameRing`)."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -632,9 +706,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--camera", required=True)
     parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
-    parser.add_argument("--ring", help="keep the analysed frames in this shared memory")
+    parser.add_argument("--ring", help="keep frames for the flight recorder under this name")
+    parser.add_argument("--ring-rate", type=float, default=0.0)
     args = parser.parse_args(argv)
-    return serve(args.fd, args.camera, args.vision, args.ring)
+    ring = None if args.ring is None else RingSpec(args.ring, args.ring_rate)
+    return serve(args.fd, args.camera, args.vision, ring)
 
 
 if __name__ == "__main__":

@@ -13,15 +13,17 @@ Two sides, in two processes (:mod:`udan.edge.sidecar`'s shape):
   perception) turns the records into MCAP messages (:mod:`udan.edge.flightlog` says which),
   and takes the frames.
 
-Frames never pass through the loop. The perception process copies every frame it analysed,
-after sending its scene, into a ring in shared memory (:class:`udan.edge.perception.FrameRing`);
-when a decision's journal entry arrives here, the frame it was decided on (found by its capture
-time) is copied out of the ring at once and written losslessly (``foxglove.RawImage``, which
-MCAP's zstd chunks compress: a PNG encoder took 6-10 times as long for a few percent less);
-every ``1 / rate`` seconds the newest frame of the ring is written as a JPEG of the quality
-asked (or losslessly, if asked). A decided frame the ring no longer holds (the recorder fell that
-far behind) is counted as missed, as is every record the outlet dropped; the counts are the
-recorder's reply when the edge closes it, and the file's last metadata record.
+Frames never pass through the loop. The perception process remembers the last frames it
+analysed (by reference, no copy); after each step the loop tells it which one the step used
+(its capture time, one small message), and it copies that frame into shared memory
+(:class:`udan.edge.perception.FrameRing`), and one frame every ``1 / rate`` seconds besides: a
+few copies a second instead of one a frame. The recorder takes each decided frame from there as
+soon as the decision's entry arrives and writes it losslessly (``foxglove.RawImage``, which
+MCAP's zstd chunks compress: a PNG encoder took 6-10 times as long for a few percent less), and
+the others as JPEGs of the quality asked (or losslessly, if asked). A decided frame that is not
+found (the perception no longer remembered it, or the recorder fell behind) is counted as
+missed, as is every record the outlet dropped; the counts are the recorder's reply when the
+edge closes it, and the file's last metadata record.
 """
 
 from __future__ import annotations
@@ -44,11 +46,12 @@ import numpy as np
 
 from udan.edge import flightlog as fl
 from udan.edge.camera import CameraError, attach_frames
+from udan.edge.perception import RingSpec
 from udan.edge.sidecar import Inlet, Outlet, ignore_interrupts
 
-RECORDER_NICENESS = 5
-"""How much nicer than the loop the recorder process runs (as much as the perception: a decided
-frame must be taken out of the ring before the perception has written over it)."""
+RECORDER_NICENESS = 10
+"""How much nicer than the loop the recorder process runs: it has seconds, a command 10 ms, a
+frame its period."""
 RECORDER_BUFFER_BYTES = 4 << 20
 """What may wait in the socket for the recorder (a few seconds of a 5-car run's records)."""
 CLOSE_TIMEOUT_S = 60.0
@@ -70,7 +73,7 @@ class FlightRecorder:
         path: Path,
         meta: dict[str, Any],
         *,
-        ring: str | None,
+        ring: RingSpec | None,
         rate: float = DEFAULT_RATE,
         quality: int | None = DEFAULT_QUALITY,
     ) -> None:
@@ -78,7 +81,7 @@ class FlightRecorder:
         self.path = path
         args = ["--out", str(path), "--rate", str(rate), "--quality", str(quality or 0)]
         if ring is not None:
-            args += ["--ring", ring]
+            args += ["--ring", ring.name]
         self._outlet = Outlet("udan.edge.recorder", args, buffer_bytes=RECORDER_BUFFER_BYTES)
         self._pending: list[tuple] = [("meta", meta)]
         self._seq = 0
@@ -189,28 +192,31 @@ class McapLog:
 
 
 class FrameTaker:
-    """Takes frames out of the perception's ring into the file. One thread copies them out
-    (a memory copy: the decided ones as soon as asked, the newest every ``1 / rate`` s) into a
-    queue of at most `QUEUE_BYTES`; another writes them (lossless, or JPEG of ``quality`` for
-    the others; None: lossless too). A frame the ring no longer holds or the queue has no room
-    for is counted as missed."""
+    """Takes frames out of the perception's shared memory (:class:`FrameRing`) into the file.
+    One thread copies them out: each decided frame as soon as its decision's entry arrives
+    (found by its capture time), and the previews as they come (polled at twice their rate),
+    into a queue of at most `QUEUE_BYTES`; another writes them (lossless; the previews as
+    JPEG of ``quality``, or lossless for None). A decided frame not found (the perception no
+    longer remembered it, or the recorder fell `DECIDED_SLOTS` decisions behind) or without
+    room in the queue is counted as missed."""
 
     QUEUE_BYTES = 256 << 20
-    FIND_WAIT_S = 0.2
+    FIND_WAIT_S = 0.5
 
-    def __init__(self, ring: str | None, log: McapLog, rate: float, quality: int | None) -> None:
+    def __init__(
+        self, ring: RingSpec | None, log: McapLog, rate: float, quality: int | None
+    ) -> None:
         self.ring = ring
         self.log = log
-        self.period_s = 1.0 / rate if rate > 0 else None
+        self.poll_s = 0.5 / rate if rate > 0 else None
         self.quality = quality
         self.lossless = 0
         self.lossy = 0
         self.missed = 0
-        """Decided frames not written: gone from the ring, no room in the queue, no ring."""
+        """Decided frames not written: not found in time, no room in the queue, no ring."""
         self.skipped = 0
-        """Other frames not written for want of room in the queue."""
-        self._buf: Any = None
-        self._layout: Any = None
+        """Previews not written for want of room in the queue."""
+        self._rings: dict[str, tuple[Any, Any]] = {}  # attached: name -> (mapping, layout)
         self._wanted: queue.Queue[tuple[int, int] | None] = queue.Queue()
         self._taken: queue.Queue[tuple[int, int, np.ndarray, bool] | None] = queue.Queue()
         self._queued_bytes = 0
@@ -231,57 +237,64 @@ class FrameTaker:
         self._wanted.put(None)
         self._taker.join()
         self._writer.join()
-        if self._buf is not None:
-            self._buf.close()
+        for buf, _ in self._rings.values():
+            buf.close()
 
-    def _attach(self) -> bool:
-        if self._buf is None and self.ring is not None:
+    def _ring(self, name: str) -> tuple[Any, Any] | None:
+        """The shared memory ``name`` (mapped once; kept when the perception removes it)."""
+        if name not in self._rings:
             with contextlib.suppress(CameraError):
-                self._buf, self._layout = attach_frames(self.ring)
-        return self._buf is not None
+                self._rings[name] = attach_frames(name)
+        return self._rings.get(name)
 
     def _take(self) -> None:
-        due = time.monotonic()
         while True:
-            timeout = None if self.period_s is None else max(0.0, due - time.monotonic())
             try:
-                wanted = self._wanted.get(timeout=timeout)
+                wanted = self._wanted.get(timeout=self.poll_s)
             except queue.Empty:
-                due = max(due + self.period_s, time.monotonic())
-                if self._attach():
-                    self._copy(self._layout.latest(self._buf), 0, decided=False)
+                self._preview()
                 continue
             if wanted is None:
                 self._taken.put(None)
                 return
-            index, t_ns = wanted
-            number = self._find(t_ns)
-            if number is None or not self._copy(number, index, decided=True):
+            if not self._decided(*wanted):
                 self.missed += 1
 
-    def _find(self, t_ns: int) -> int | None:
-        """The ring's number of the frame captured at ``t_ns``. The perception process copies a
-        frame into the ring just after sending its scene, so a decision on it can come first:
-        wait for it while the ring has nothing newer, `FIND_WAIT_S` at most."""
+    def _decided(self, index: int, t_ns: int) -> bool:
+        """The decided frame captured at ``t_ns`` into the queue. The edge asks the perception
+        for it right after the step, before it sends the step's entries here, so it is
+        normally there already; wait a little for it while nothing newer is."""
         deadline = time.monotonic() + self.FIND_WAIT_S
-        while self._attach():
-            number, newest = self._layout.find(self._buf, t_ns)
-            if number is not None:
-                return number
-            if newest > t_ns or time.monotonic() > deadline:
-                return None
-            time.sleep(0.001)
-        return None
+        while self.ring is not None:
+            ring = self._ring(self.ring.decided)
+            if ring is not None:
+                buf, layout = ring
+                number, newest = layout.find(buf, t_ns)
+                if number is not None:
+                    got = layout.read(buf, number)
+                    return got is not None and self._queue(got, index, decided=True)
+                if newest > t_ns:
+                    return False
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.002)
+        return False
 
-    def _copy(self, number: int, index: int, *, decided: bool) -> bool:
-        """Frame ``number`` of the ring into the queue; whether it went."""
-        got = self._layout.read(self._buf, number) if number else None
-        if got is None:
-            return False
+    def _preview(self) -> None:
+        ring = None if self.ring is None else self._ring(self.ring.previews)
+        if ring is not None:
+            buf, layout = ring
+            number = layout.latest(buf)
+            got = layout.read(buf, number) if number else None
+            if got is not None:
+                self._queue(got, number, decided=False)
+
+    def _queue(self, got: tuple[np.ndarray, int], index: int, *, decided: bool) -> bool:
+        """A frame (image, capture time) into the writer's queue; whether it is written."""
         image, t_ns = got
         lossless = decided or self.quality is None
         if t_ns in self._written[lossless]:
-            return True  # taken already (a decided frame may have gone out as a JPEG as well)
+            return True  # taken already (a decided frame may have gone out as a preview too)
         with self._lock:
             if self._queued_bytes + image.nbytes > self.QUEUE_BYTES:
                 self.skipped += not decided
@@ -290,7 +303,7 @@ class FrameTaker:
         if lossless:
             self._written[True].append(t_ns)
         self._written[False].append(t_ns)
-        self._taken.put((t_ns, index or number, image, decided))
+        self._taken.put((t_ns, index, image, decided))
         return True
 
     def _write(self) -> None:
@@ -378,7 +391,7 @@ class Writer:
         }
 
 
-def record(fd: int, out: Path, ring: str | None, rate: float, quality: int | None) -> int:
+def record(fd: int, out: Path, ring: RingSpec | None, rate: float, quality: int | None) -> int:
     """The recorder process: every record until the edge closes its end, then the file's end
     and a reply with the counts."""
     ignore_interrupts()
@@ -417,7 +430,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quality", type=int, default=DEFAULT_QUALITY, help="0: lossless")
     args = parser.parse_args(argv)
     quality = args.quality or None
-    return record(args.fd, args.out, args.ring, args.rate, quality)
+    ring = None if args.ring is None else RingSpec(args.ring, args.rate)
+    return record(args.fd, args.out, ring, args.rate, quality)
 
 
 if __name__ == "__main__":

@@ -227,3 +227,5 @@ class EdgeShell:
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
         report = await self.link.dispatch(commands, decided_ns)
         self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
+        if self.recorder is not None:  # the frame the step used, for the flight recording
+            self.perception.keep_frame(state.t_capture_ns)

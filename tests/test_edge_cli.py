@@ -57,6 +57,8 @@ def fleet(tmp_path: Path) -> Path:
         ("unknown_transport", "transport"),
         ("report_folder", "does not exist"),
         ("bad_world", "--world must be HOST:PORT"),
+        ("unknown_camera_option", "unknown camera option 'whidth'"),
+        ("camera_not_answering", "GenICam camera 10.255.255.1 does not answer"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(
@@ -79,6 +81,8 @@ def test_bad_input_is_one_line_and_exit_2(
         "unknown_transport": {"--transport": "carrier-pigeon"},
         "report_folder": {"--report": str(tmp_path / "no" / "such" / "r.json")},
         "bad_world": {"--world": "nohost"},
+        "unknown_camera_option": {"--camera": "/dev/video99?whidth=640"},
+        "camera_not_answering": {"--camera": "aravis://10.255.255.1?fps=40"},  # nobody there
     }[case]
     opts = {**base, **change}
     argv = [x for k, v in opts.items() if v is not None for x in (k, v)]
