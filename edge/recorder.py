@@ -248,10 +248,13 @@ class FrameTaker:
         return self._rings.get(name)
 
     def _take(self) -> None:
+        due = time.monotonic()
         while True:
+            timeout = None if self.poll_s is None else max(0.0, due - time.monotonic())
             try:
-                wanted = self._wanted.get(timeout=self.poll_s)
+                wanted = self._wanted.get(timeout=timeout)
             except queue.Empty:
+                due = max(due + self.poll_s, time.monotonic())
                 self._preview()
                 continue
             if wanted is None:
