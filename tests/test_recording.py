@@ -208,6 +208,57 @@ def test_bad_recordings_and_replays_are_one_line_and_exit_2(
         assert says in lines[0], (args, lines)
 
 
+def test_an_edge_killed_mid_run_leaves_a_recording_that_replays(tmp_path: Path) -> None:
+    """The recorder finishes the file when the edge's end of its socket closes, however the
+    edge ended: SIGKILLed mid-run, its recording still reads back and replays exactly."""
+    fleet = write_fleet(tmp_path / "fleet.toml", 2)
+    edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
+    world = subprocess.Popen(
+        [
+            sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet),
+            "--edge", f"127.0.0.1:{edge_port}", "--camera-name", camera, "--agents", "2",
+            "--obstacles", "0", "--cell-time-ms", "60",
+        ],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    mcap = tmp_path / "run.mcap"
+    try:
+        control = json.loads(world.stdout.readline())["control_port"]
+        telemetry = tmp_path / "telemetry.jsonl"
+        edge = subprocess.Popen(
+            [
+                UDAN_EDGE, "--camera", f"virtual://{camera}", "--model", str(bundled_policy()),
+                "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
+                "--world", f"127.0.0.1:{control}", "--record", str(mcap), "--quiet",
+                "--telemetry", str(telemetry),
+            ],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (
+            not telemetry.exists() or telemetry.read_text().count('"kind":"step"') < 10
+        ):
+            time.sleep(0.2)
+        edge.kill()
+        edge.wait(30)
+    finally:
+        world.send_signal(signal.SIGTERM)
+        world.wait(30)
+    deadline = time.monotonic() + 60
+    while True:  # the recorder writes what it holds and the file's end, then exits
+        try:
+            log = fl.read_flight_log(mcap)
+            break
+        except fl.FlightLogError:
+            assert time.monotonic() < deadline, "the recording was never finished"
+            time.sleep(0.5)
+    assert sum(e.call == "decide" for e in log.entries) >= 10
+    done = _edge("--replay", str(mcap), "--report", str(tmp_path / "replay.json"))
+    assert done.returncode == 0, done.stderr
+    decisions = json.loads((tmp_path / "replay.json").read_text())["decisions"]
+    assert decisions["identical"] == decisions["steps"] >= 10
+
+
 @pytest.mark.slow
 def test_a_minute_of_sim_recorded_replays_exactly_and_the_vision_agrees(tmp_path: Path) -> None:
     """The issue's own check: 60 s of ``udan-edge --sim --record``, replayed: every decision the
