@@ -5,8 +5,8 @@ file (the format rosbag2 writes by default; Foxglove opens it) whose log times a
 monotonic clock in nanoseconds (the clock every span of the edge is measured on; the run's
 metadata holds one reading of it beside the realtime clock, to turn it into wall time):
 
-- ``/camera/lossless`` (``foxglove.RawImage``, mono8, protobuf; MCAP's zstd chunk compression
-  keeps it lossless): every frame a decision used; ``/camera/jpeg``
+- ``/camera/lossless`` (``foxglove.RawImage``, mono8, protobuf, uncompressed): every frame a
+  decision used; ``/camera/jpeg``
   (``foxglove.CompressedImage``): the others, at the rate and quality asked (lossless ones go to
   the first topic); both stamped at capture, their sequence number the frame's.
 - ``/vision/scene``: each frame's scene as the core took it: the car sightings (cell, metres,

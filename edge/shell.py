@@ -55,10 +55,15 @@ class LoopConfig:
         return StepTiming(int(self.step_timeout_s * 1e9), int(self.unseen_grace_s * 1e9))
 
 
+#: With no step for this many kept records (a stalled camera, an empty arena: ~3 s of frames),
+#: the flight recorder sends them anyway.
+FLUSH_PENDING = 400
+
+
 class Flushable(Protocol):
     """What keeps records inside a step and sends them between steps (the flight recorder)."""
 
-    def flush(self) -> None: ...
+    def flush(self, more_than: int = 0) -> None: ...
 
 
 class EdgeShell:
@@ -227,5 +232,10 @@ class EdgeShell:
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
         report = await self.link.dispatch(commands, decided_ns)
         self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
-        if self.recorder is not None:  # the frame the step used, for the flight recording
+        if self.recorder is not None:
+            # the frame the step used, and what the recorder was given since the last step:
+            # sent now, when the cars take a move before the next decision, not between a
+            # frame's rehearsal and its decision (pickling them would cool the caches the
+            # rehearsal warmed)
             self.perception.keep_frame(state.t_capture_ns)
+            self.recorder.flush()
