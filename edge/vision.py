@@ -55,9 +55,11 @@ from udan.edge.camera import Frame
 from udan.edge.detect import (
     MIN_CONTOUR,
     THRESHOLD_WINDOW,
+    ZOOM,
     MarkerDetector,
+    normalised,
     shape_of,
-    shortest_side,
+    thickness,
 )
 from udan.edge.geometry import (
     CELL_KIND_IDS,
@@ -82,6 +84,10 @@ OVERLAP_LINES = 12
 extent (a calibration marker, or a car marker printed twice as large, near a tilted camera)."""
 CAR_SCALES = (0.5, 2.0)
 """Car markers are found printed from half to twice the configured side."""
+SMALL_ZOOMS = 4
+"""Candidates of a small-marker sweep window searched again at twice the resolution, at most:
+a car marker too thin to decode at full resolution (under a camera tilted 60 degrees, from
+afar) is found, and a window full of thin seams costs no more than that."""
 SIZE_GRID = 13
 """Arena points per side at which expected marker sizes are computed."""
 SIZE_MARGIN = (0.8, 1.25)
@@ -189,7 +195,7 @@ class _ExpectedSizes:
         self.side = side_lo
 
     def within(self, box: tuple[int, int, int, int]) -> tuple[float, float, float]:
-        """(shortest contour, longest contour, shortest side as configured) of a car
+        """(shortest contour, longest contour, least thickness as configured) of a car
         marker in the image window `box`, from the grid points it holds (or, when it holds
         none, the nearest)."""
         x0, y0, x1, y1 = box
@@ -206,21 +212,15 @@ class _ExpectedSizes:
 
 
 def _contours(quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Contour lengths (as :func:`udan.edge.detect.shape_of`) and shortest sides of quads
-    (n, 4, 2)."""
+    """Contour lengths (as :func:`udan.edge.detect.shape_of`) and thicknesses
+    (:func:`udan.edge.detect.thickness`) of quads (n, 4, 2)."""
     length = np.abs(np.roll(quads, -1, axis=1) - quads).max(-1).sum(-1)
-    return length, _side_lengths(quads).min(-1)
+    return length, thickness(quads)
 
 
 def _side_lengths(quads: np.ndarray) -> np.ndarray:
     """The four side lengths (n, 4) of quads (n, 4, 2)."""
     return np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=2)
-
-
-def _normalised(patch: np.ndarray) -> np.ndarray:
-    a = patch.astype(np.float32).ravel()
-    a -= a.mean()
-    return a / max(float(np.linalg.norm(a)), 1e-6)
 
 
 class Vision:
@@ -326,19 +326,14 @@ class Vision:
         self._sweeps += self._tile == 0
         (cx0, cy0, cx1, cy1), (x0, y0, x1, y1) = self._tiles[t]
         lo, hi, s, window = self._sweep_bounds(t)
-        x1 -= (x1 - x0) % s
-        y1 -= (y1 - y0) % s
-        roi = img[y0:y1, x0:x1]
-        if s > 1:
-            roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
-        else:
+        roi, off = self.detector.window_image(img, (x0, y0, x1, y1), s)
+        if s == 1:
             roi = roi.copy()  # painted over below
-        off = np.array([x0 + (s - 1) / 2, y0 + (s - 1) / 2])
         known = [k for k in self._known[t] if k.scale == s and self._unchanged(roi, k)]
         masks = [*cars.values(), *self.fit.quads.values(), *(k.quad for k in known)]
         masks += [k.quad for i, ks in enumerate(self._known) if i != t for k in ks]
         self._paint(roi, off, masks, s)
-        ids, quads = self.detector.markers(roi, (lo / s, hi / s), window)
+        ids, quads, _ = self.detector.markers(roi, (lo / s, hi / s), window)
         corners_seen = {}
         for marker, quad in zip(ids, quads, strict=True):
             full = quad * s + off
@@ -350,7 +345,7 @@ class Vision:
                     bx0, by0 = np.maximum(np.floor(quad.min(0)).astype(int) - 1, 0)
                     bx1, by1 = np.ceil(quad.max(0)).astype(int) + 2
                     box = (int(bx0), int(by0), int(bx1), int(by1))
-                    template = _normalised(roi[by0:by1, bx0:bx1])
+                    template = normalised(roi[by0:by1, bx0:bx1])
                     known.append(_Known(marker, full, box, template, s))
             elif self.tracker.is_tracked(marker) and marker not in cars:
                 cars[marker] = full
@@ -377,7 +372,7 @@ class Vision:
         patch = roi[y0:y1, x0:x1]
         if patch.size != known.template.size:
             return False
-        return float(_normalised(patch) @ known.template) >= TEMPLATE_MATCH
+        return float(normalised(patch) @ known.template) >= TEMPLATE_MATCH
 
     @staticmethod
     def _paint(roi: np.ndarray, off: np.ndarray, quads: list[np.ndarray], scale: int) -> None:
@@ -425,7 +420,8 @@ class Vision:
         """One window of the small-marker sweep: car markers printed smaller than configured
         may be too small for the search resolution, so while a car of the fleet is not tracked,
         one window a frame (half a sweep tile) is searched at full resolution for
-        markers between the smallest car marker expected there and the configured size."""
+        markers between the smallest car marker expected there and the configured size, and
+        the thinnest candidates that do not decode there once more at twice it."""
         if not self.calibrated or not self.tracker.missing():
             return
         t = self._small_tile
@@ -436,36 +432,28 @@ class Vision:
         if self.detector.scale_for(small) >= self.detector.s:
             return  # the main sweep reads them
         hi = lo / CAR_SCALES[0] * SIZE_MARGIN[1] / SIZE_MARGIN[0]
-        for marker, quad in self.detector.detect(img, box, (lo, hi), scale=1, side=small):
+        found = self.detector.detect(img, box, (lo, hi), 1, small, zoom_thin=SMALL_ZOOMS)
+        for marker, quad in found:
             if self.tracker.is_tracked(marker) and marker not in cars:
                 cars[marker] = quad
 
     def _check_corner(self, img: np.ndarray) -> dict[int, np.ndarray]:
         """Look for one calibration marker (a different one each frame) where it was last seen,
-        so a moved camera is noticed within four frames rather than a sweep. Returns it if
-        found; a marker not found stops counting for the fit."""
+        so a moved camera is noticed within four frames rather than a sweep; a second time one
+        resolution finer if the first search misses it. Returns it if found; a marker not found
+        stops counting for the fit."""
         check = self.fit.next_check()
         if check is None:
             return {}
         marker, quad = check
         detector = self.detector
         cx, cy, side, length = shape_of(quad)
-        box = detector.box(cx, cy, 2.5 * side)
-        hits = [
-            c for m, c in detector.detect(img, box, (0.8 * length, 1.2 * length)) if m == marker
-        ]
-        if hits:
-            return {marker: hits[0]}
-        if (
-            detector.s > 1
-            and (
-                found := detector.find(
-                    img, marker, (cx, cy), 2.5 * side, length, shortest_side(quad)
-                )
-            )
-            is not None
-        ):
-            return {marker: found}
+        thin = float(thickness(quad))
+        scale = detector.scale_for(thin, zoom=True)
+        for s in dict.fromkeys((scale, 1 if scale > 1 else ZOOM)):
+            found = detector.find(img, marker, (cx, cy), 2.5 * side, length, thin, s)
+            if found is not None:
+                return {marker: found}
         self.fit.lost(marker)
         return {}
 
@@ -567,7 +555,7 @@ class Vision:
         swept = self._sweep(img, cars)
         self._sweep_small(img, cars)
         checked = self._check_corner(img)
-        self.tracker.update(cars, frame.index)
+        self.tracker.update(cars, frame.index, img)
         changed = False
         for marker, quad in [*swept.items(), *checked.items()]:
             changed |= self._observe_corner(marker, self.detector.refine(img, quad))
