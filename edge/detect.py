@@ -10,6 +10,7 @@ thin to read at full resolution (far markers under a tilted camera) are searched
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -45,6 +46,9 @@ CELL_PIXELS = 8
 small markers (3 search pixels per module) decode reliably, for no measurable cost."""
 
 
+_NEXT = [1, 2, 3, 0]
+
+
 def shape_of(corners: np.ndarray) -> tuple[float, float, float, float]:
     """(centre x, centre y, mean side, contour length) of a marker's image quadrilateral. The
     contour length is what the detector counts as a perimeter, the points of the 8-connected
@@ -62,11 +66,12 @@ def thickness(corners: np.ndarray) -> np.ndarray:
     foreshortens markers to a third of their width, and one turned against the tilt is a
     rhombus narrower than its shortest side."""
     q = np.asarray(corners, dtype=np.float64)
-    x, y = q[..., 0], q[..., 1]
-    area = 0.5 * np.abs((x * np.roll(y, -1, -1) - np.roll(x, -1, -1) * y).sum(-1))
-    sides = np.linalg.norm(np.roll(q, -1, -2) - q, axis=-1)
-    pairs = np.maximum(sides[..., 0] + sides[..., 2], sides[..., 1] + sides[..., 3]) / 2
-    return area / np.maximum(pairs, 1e-9)
+    d = q[..., _NEXT, :] - q
+    sides = np.sqrt((d * d).sum(-1))
+    p, r = q[..., 2, :] - q[..., 0, :], q[..., 3, :] - q[..., 1, :]
+    double_area = np.abs(p[..., 0] * r[..., 1] - p[..., 1] * r[..., 0])
+    pairs = np.maximum(sides[..., 0] + sides[..., 2], sides[..., 1] + sides[..., 3])
+    return double_area / np.maximum(pairs, 1e-9)
 
 
 def normalised(patch: np.ndarray) -> np.ndarray:
@@ -168,8 +173,8 @@ class MarkerDetector:
             roi, (perimeter[0] / s, perimeter[1] / s), self.window_for(side, s)
         )
         found = dict(zip(ids, quads * s + off, strict=True))
-        if zoom_thin and s > ZOOM and len(rejected):
-            rejected = rejected * s + off
+        if zoom_thin and s > ZOOM and rejected:
+            rejected = np.asarray(rejected, dtype=np.float64).reshape(-1, 4, 2) * s + off
             thin = rejected[thickness(rejected) < ZOOM_BELOW_PX * self.modules][:zoom_thin]
             for quad in thin:
                 cx, cy, size, length = shape_of(quad)
@@ -181,10 +186,10 @@ class MarkerDetector:
 
     def markers(
         self, image: np.ndarray, perimeter: tuple[float, float], window: int
-    ) -> tuple[list[int], np.ndarray, np.ndarray]:
+    ) -> tuple[list[int], np.ndarray, Sequence[np.ndarray]]:
         """One detector call: ids and corners (n, 4, 2) of the markers in `image` whose contour
         length (in its pixels) is within `perimeter`, thresholded with one `window`, and the
-        corners (m, 4, 2) of the candidates that did not decode."""
+        corners (each (1, 4, 2), as OpenCV gives them) of the candidates that did not decode."""
         longest = max(image.shape)
         p = self._params
         p.adaptiveThreshWinSizeMin = p.adaptiveThreshWinSizeMax = window
@@ -192,7 +197,6 @@ class MarkerDetector:
         p.maxMarkerPerimeterRate = perimeter[1] / longest
         self._detector.setDetectorParameters(p)
         corners, ids, rejected = self._detector.detectMarkers(image)
-        rejected = np.asarray(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if ids is None:
             return [], np.zeros((0, 4, 2)), rejected
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)

@@ -182,20 +182,22 @@ class CarTracker:
         of those decoded); a track missed more than ``lost_after`` frames in a row is dropped
         (the sweep finds the car again)."""
         h, w = img.shape
-        for marker, corners in cars.items():
+        thick = thickness(np.stack(list(cars.values()))).tolist() if cars else []
+        for (marker, corners), thin in zip(cars.items(), thick, strict=True):
             shape = shape_of(corners)
             tr = self.tracks.get(marker)
             if tr is None or index <= tr.index:
-                tr = self.tracks[marker] = Track(corners, index, shape, float(thickness(corners)))
+                tr = self.tracks[marker] = Track(corners, index, shape, thin)
             else:
                 gap = index - tr.index
                 tr.velocity = ((shape[0] - tr.shape[0]) / gap, (shape[1] - tr.shape[1]) / gap)
                 tr.corners, tr.index, tr.shape, tr.misses = corners, index, shape, 0
-                tr.thickness = float(thickness(corners))
+                tr.thickness = thin
             if marker not in self._unmoved:
-                x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 1, 0)
-                x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, (w, h))
-                tr.look_box = (int(x0), int(y0), int(x1), int(y1))
+                (x0, y0), (x1, y1) = corners.min(0).tolist(), corners.max(0).tolist()
+                x0, y0 = max(math.floor(x0) - 1, 0), max(math.floor(y0) - 1, 0)
+                x1, y1 = min(math.ceil(x1) + 2, w), min(math.ceil(y1) + 2, h)
+                tr.look_box = (x0, y0, x1, y1)
                 tr.look = img[y0:y1, x0:x1].copy()
         for marker in [m for m, tr in self.tracks.items() if tr.index != index]:
             tr = self.tracks[marker]
