@@ -69,13 +69,13 @@ class CarTracker:
         allows for a cell's step (in marker sides) besides its velocity."""
         self._lost_after = lost_after
         self.tracks: dict[int, Track] = {}
-        self._unmoved: set[int] = set()
+        self.unmoved: set[int] = set()
         """Markers `track` found by their look, not decoded, in the current frame."""
 
     def reset(self) -> None:
         """No car seen yet."""
         self.tracks = {}
-        self._unmoved = set()
+        self.unmoved = set()
 
     def is_tracked(self, marker: int) -> bool:
         """Cars, and the surround target: it moves like one."""
@@ -114,10 +114,10 @@ class CarTracker:
             n = sum(1 for w in wanted if w[0] == scale and w[1] <= SIZE_GROUP * length)
             found.update(self._track_group(img, [w[1:] for w in wanted[:n]], scale))
             wanted = wanted[n:]
-        self._unmoved = {
+        self.unmoved = {
             m for m, tr in self.tracks.items() if m not in found and self._looks_unmoved(img, tr)
         }
-        found.update((m, self.tracks[m].corners) for m in self._unmoved)
+        found.update((m, self.tracks[m].corners) for m in self.unmoved)
         return found
 
     @staticmethod
@@ -193,7 +193,7 @@ class CarTracker:
                 tr.velocity = ((shape[0] - tr.shape[0]) / gap, (shape[1] - tr.shape[1]) / gap)
                 tr.corners, tr.index, tr.shape, tr.misses = corners, index, shape, 0
                 tr.thickness = thin
-            if marker not in self._unmoved:
+            if marker not in self.unmoved:
                 (x0, y0), (x1, y1) = corners.min(0).tolist(), corners.max(0).tolist()
                 x0, y0 = max(math.floor(x0) - 1, 0), max(math.floor(y0) - 1, 0)
                 x1, y1 = min(math.ceil(x1) + 2, w), min(math.ceil(y1) + 2, h)

@@ -41,6 +41,7 @@ few candidates. This module puts the stages together (and sweeps); each concern 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -69,6 +70,7 @@ from udan.edge.geometry import (
     heading_of,
     square,
 )
+from udan.edge.heights import HeightCheck
 from udan.edge.tracking import CarTracker
 
 MASK = 1.15
@@ -92,6 +94,11 @@ SIZE_GRID = 13
 """Arena points per side at which expected marker sizes are computed."""
 SIZE_MARGIN = (0.8, 1.25)
 """Slack on the expected sizes (between grid points, corner rounding, a camera just moved)."""
+HEIGHT_MODULE_PX = 4.0
+"""Car markers with at least this many full-resolution pixels per module are measured for the
+height check: cornerSubPix pulls the corners of smaller ones off by their inner pattern."""
+STILL_PX = 0.5
+"""Pixels per frame under which a car counts as standing still (motion blurs its edges)."""
 BUDGET_FLOOR_M = 0.004
 """The least error budget a sighting has (metres): corner refinement and image noise."""
 BUDGET_PIXELS = 1.0
@@ -143,6 +150,16 @@ class Scene:
     cells: dict[str, frozenset[tuple[int, int]]]
     vision_ns: int
     """Time `Vision.process` spent on this frame."""
+    warnings: tuple[str, ...] = ()
+    """One-line warnings about the setup first known in this frame (each comes once): a car
+    marker whose size says it is not at the fleet file's height (:mod:`udan.edge.heights`).
+    Whoever drops a scene passes them on to the next (:meth:`after`)."""
+
+    def after(self, dropped: Scene | None) -> Scene:
+        """This scene, carrying the warnings of the scene `dropped` before it."""
+        if dropped is None or not dropped.warnings:
+            return self
+        return dataclasses.replace(self, warnings=dropped.warnings + self.warnings)
 
 
 @dataclass
@@ -241,6 +258,7 @@ class Vision:
         self.geometry = geometry
         self.marker_heights = {m: h for m, h in (marker_heights or {}).items() if h}
         """Car marker id -> metres above the floor (markers not listed lie on it)."""
+        self.heights = HeightCheck(self.marker_heights, geometry.car_marker_m)
         calibration = None if calibration_file is None else load_calibration(calibration_file)
         self._sweep_tiles = sweep_tiles
         self.detector = MarkerDetector(geometry.dictionary)
@@ -513,6 +531,40 @@ class Vision:
             )
         return out
 
+    def _check_height(self, img: np.ndarray, index: int) -> str | None:
+        """Measure one car marker a frame (in turn) for the height check
+        (:mod:`udan.edge.heights`): one decoded in this frame, standing still, large enough
+        for its corners to be refined at full resolution; returns its warning if this sighting
+        completes one. Only with a calibration file: without one the camera's height is an
+        estimate, and a lens not described bends the markers' sides."""
+        if self.fit.calibration is None or not self.calibrated:
+            return None  # the camera's height is only estimated, the lens maybe not described
+        camera_height = self.fit.camera_height()
+        thick = HEIGHT_MODULE_PX * self.detector.modules
+        ready = [
+            (m, tr)
+            for m, tr in self.tracker.tracks.items()
+            if tr.index == index
+            and m != TARGET_ID
+            and m not in self.heights.done
+            and m not in self.tracker.unmoved
+            and tr.thickness >= thick
+            and math.hypot(*tr.velocity) < STILL_PX
+        ]
+        if not ready:
+            return None
+        marker, tr = ready[index % len(ready)]
+        refined = self.detector.refine(img, tr.corners)
+        side = float(
+            _side_lengths(self.fit.to_arena(refined, self.heights.told(marker))[None]).mean()
+        )
+        r, t = self.fit.pose
+        foot = -(r.T @ t)[:2]
+        g = self.geometry
+        grid = np.array([[0.0, 0.0], [g.width_m, 0.0], [g.width_m, g.height_m], [0.0, g.height_m]])
+        reach = float(np.linalg.norm(grid - foot, axis=1).max())
+        return self.heights.add(marker, side, camera_height, reach)
+
     def budgets_at_cells(self) -> np.ndarray:
         """(rows, cols): the error budget (metres) of a car marker on the floor at each cell's
         centre, the worse of two headings; what `udan-calibrate check` shows a lab."""
@@ -562,6 +614,7 @@ class Vision:
         if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
             self.fit.fit()
         sightings = self._sightings(frame.index)
+        warning = self._check_height(img, frame.index)
         cells = self._static_cells()
         target = sightings.pop(TARGET_ID, None)
         if target is not None and target.inside:
@@ -573,4 +626,5 @@ class Vision:
             cars=sightings,
             cells=cells,
             vision_ns=time.perf_counter_ns() - t0,
+            warnings=() if warning is None else (warning,),
         )

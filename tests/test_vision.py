@@ -6,6 +6,7 @@ well under that); cars closer to a border are held to the 2 cm position bound on
 
 import dataclasses
 import math
+import re
 
 import cv2
 import numpy as np
@@ -14,7 +15,7 @@ import pytest
 from udan.edge.calibration import CameraCalibration, VisionError, load_calibration, save_calibration
 from udan.edge.camera import Frame
 from udan.edge.geometry import CELL_KIND_IDS, ArenaGeometry
-from udan.edge.vision import Vision
+from udan.edge.vision import Scene, Vision
 from udan.hil.render import CameraModel, Renderer
 
 GEOMETRY = ArenaGeometry()
@@ -385,6 +386,77 @@ def test_raised_markers_without_a_calibration_use_an_estimated_focal_length():
     scene = settled_scene(Run(Vision(GEOMETRY, marker_heights=heights), renderer), cars)
     assert set(scene.cars) == set(heights)
     assert max(errors_mm(scene, cars)) < 10
+
+
+HEIGHT_CASES = {
+    # name: (camera, heights as they are, heights the fleet file gives, printed side scale)
+    "10 cm up, told nothing": (
+        CameraModel(tilt_deg=25, k1=-0.1, noise_sigma=3, blur_sigma=0.7, seed=17),
+        {5: 0.10, 6: 0.10, 7: 0.0},
+        {},
+        1.0,
+    ),
+    "on the floor, told 12 cm": (
+        CameraModel(tilt_deg=45, noise_sigma=3, blur_sigma=0.7, seed=18),
+        {},
+        {5: 0.12},
+        1.0,
+    ),
+    "15 cm up, told so": (
+        CameraModel(tilt_deg=10, k1=0.1, noise_sigma=3, seed=19),
+        {5: 0.15, 6: 0.15, 7: 0.15},
+        {5: 0.15, 6: 0.15, 7: 0.15},
+        1.0,
+    ),
+    "printed twice as large": (CameraModel(noise_sigma=3, seed=20), {}, {}, 2.0),
+}
+
+
+@pytest.mark.parametrize("case", list(HEIGHT_CASES))
+def test_a_marker_height_the_fleet_file_gets_wrong_is_warned_once(case, tmp_path):
+    """Cars standing still, seen through a calibrated camera: a marker whose size through its
+    told plane says it sits at another height is warned about once, in one line naming the
+    height it seems to be at; one printed at another size is said to be uncheckable; one
+    where the fleet file says is not warned about. Without a calibration file nothing is
+    checked."""
+    camera, heights, told, scale = HEIGHT_CASES[case]
+    printed = dataclasses.replace(GEOMETRY, car_marker_m=GEOMETRY.car_marker_m * scale)
+    renderer = Renderer(printed, camera, marker_heights=heights)
+    path = tmp_path / "camera.yaml"
+    size = (camera.width, camera.height)
+    save_calibration(path, CameraCalibration(renderer.camera_matrix, renderer.dist_coeffs, size))
+    # near the camera's side of the arena: markers thinner than 4 pixels a module are not measured
+    cars = [(5, *GEOMETRY.cell_centre(1, 2), 0.3), (6, *GEOMETRY.cell_centre(3, 6), -2.0)]
+    cars.append((7, *GEOMETRY.cell_centre(2, 8), 1.2))
+    for calibrated in (True, False):
+        calibration = {"calibration_file": str(path)} if calibrated else {}
+        vision = Vision(GEOMETRY, car_markers=[5, 6, 7], marker_heights=told, **calibration)
+        run = Run(vision, renderer)
+        warnings = [w for _ in range(12 * SWEEP) for w in run.frame(cars).warnings]
+        if not calibrated:
+            assert warnings == [] and not vision.heights.done
+            continue
+        assert vision.heights.done == {5, 6, 7}
+        warned = {int(re.match(r"car marker (\d+) ", w).group(1)): w for w in warnings}
+        assert len(warned) == len(warnings) and all("\n" not in w for w in warnings)
+        if scale != 1.0:
+            assert set(warned) == {5, 6, 7}
+            assert all("printed at another size" in w for w in warnings)
+            continue
+        for marker in (5, 6, 7):
+            height, said = heights.get(marker, 0.0), told.get(marker, 0.0)
+            if abs(height - said) < 0.05:
+                assert marker not in warned
+            else:
+                seems = float(re.search(r"sits about (-?[\d.]+) m high", warned[marker]).group(1))
+                assert seems == pytest.approx(height, abs=0.03), warned[marker]
+
+
+def test_a_dropped_scene_passes_its_warnings_on():
+    first = Scene(0, 0, True, {}, {}, 0, warnings=("a",))
+    second = Scene(0, 1, True, {}, {}, 0, warnings=("b",))
+    assert second.after(first).warnings == ("a", "b")
+    assert second.after(None) is second
 
 
 class CoveredCorner(Renderer):
