@@ -151,8 +151,9 @@ class Scene:
     vision_ns: int
     """Time `Vision.process` spent on this frame."""
     warnings: tuple[str, ...] = ()
-    """One-line warnings about the setup first known in this frame (each comes once): a car
-    marker whose size says it is not at the fleet file's height (:mod:`udan.edge.heights`).
+    """One-line warnings about the setup first known in this frame (each comes once): the arena
+    lost or not found (every car held) and found again, a car marker whose size says it is not
+    at the fleet file's height (:mod:`udan.edge.heights`).
     Whoever drops a scene passes them on to the next (:meth:`after`)."""
 
     def after(self, dropped: Scene | None) -> Scene:
@@ -286,6 +287,10 @@ class Vision:
         self._sweeps = 0
         """Sweeps of the whole image completed."""
         self._sizes: _ExpectedSizes | None = None
+        self._arena_missing = False
+        """The scenes have said that there is no arena (:meth:`_arena_news`)."""
+        self._camera_moved = False
+        """A calibration marker shifted: why the arena was lost."""
 
     @property
     def sweep_frames(self) -> int:
@@ -481,6 +486,7 @@ class Vision:
         of markers to fit changed."""
         changed, moved = self.fit.observe(marker, corners)
         if moved:
+            self._camera_moved = True
             self._static = [[frozenset(), frozenset()] for _ in self._tiles]
             self._known = [[] for _ in self._tiles]
             self._cells = None
@@ -530,6 +536,25 @@ class Vision:
                 error_budget_m=budget,
             )
         return out
+
+    def _arena_news(self) -> str | None:
+        """The line that says the arena is gone (no camera model: no car is placed, the control
+        core holds every car), with why; and the one that says it is back. Gone means lost
+        after a fit, or not found in two sweeps from the start."""
+        seen = ", ".join(map(str, sorted(self.fit.corners))) or "none"
+        if self.calibrated:
+            if not self._arena_missing:
+                return None
+            self._arena_missing = self._camera_moved = False
+            return f"arena found again (calibration markers {seen}): cars are placed again"
+        if self._arena_missing or (self.fit.version == 0 and self._sweeps < 2):
+            return None
+        self._arena_missing = True
+        why = "the camera moved, " if self._camera_moved else ""
+        return (
+            f"no arena: {why}calibration markers seen: {seen} (3 of {CORNER_IDS[0]}-"
+            f"{CORNER_IDS[-1]} needed); every car is held until they are"
+        )
 
     def _check_height(self, img: np.ndarray, index: int) -> str | None:
         """Measure one car marker a frame (in turn) for the height check
@@ -614,7 +639,7 @@ class Vision:
         if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
             self.fit.fit()
         sightings = self._sightings(frame.index)
-        warning = self._check_height(img, frame.index)
+        warnings = (self._arena_news(), self._check_height(img, frame.index))
         cells = self._static_cells()
         target = sightings.pop(TARGET_ID, None)
         if target is not None and target.inside:
@@ -626,5 +651,5 @@ class Vision:
             cars=sightings,
             cells=cells,
             vision_ns=time.perf_counter_ns() - t0,
-            warnings=() if warning is None else (warning,),
+            warnings=tuple(w for w in warnings if w is not None),
         )

@@ -243,9 +243,10 @@ def test_calibration_follows_a_moved_camera():
         scene = run.frame(cars)
     check(scene, cars)
     run.renderer = after
-    wrong, recovered = 0, None
+    wrong, recovered, warnings = 0, None, []
     for i in range(4 * SWEEP):
         scene = run.frame(cars)
+        warnings += scene.warnings
         bad = [
             m
             for m, x, y, _ in cars
@@ -257,6 +258,43 @@ def test_calibration_follows_a_moved_camera():
     assert wrong <= 4
     assert recovered is not None and recovered <= 3 * SWEEP
     check(scene, cars)
+    assert len(warnings) == 2, warnings
+    assert warnings[0].startswith("no arena: ") and warnings[1].startswith("arena found again")
+
+
+def test_an_arena_with_calibration_markers_covered_holds_every_car_and_says_why():
+    """Two calibration markers covered from the start: after two sweeps the scenes say once
+    that there is no arena, which markers are seen and that every car is held, and place no
+    car; uncovered, the arena is found again (said once) and the cars are placed."""
+
+    class TwoCovered(CoveredCorner):
+        def render(self, cars, cells):
+            image = super().render(cars, cells)
+            marker = GEOMETRY.corner_points()[0]
+            centre = marker.mean(0)
+            paper = self.project(centre + (marker - centre) * 1.4)
+            cv2.fillConvexPoly(image, np.round(paper).astype(np.int32), 172)
+            return image
+
+    covered = TwoCovered(GEOMETRY, CameraModel(tilt_deg=20, noise_sigma=3))
+    cars = placements(np.random.default_rng(6), 3)
+    run = Run(Vision(GEOMETRY), covered)
+    scenes = [run.frame(cars) for _ in range(4 * SWEEP)]
+    assert not any(s.calibrated or s.cars for s in scenes)
+    warnings = [(i, w) for i, s in enumerate(scenes) for w in s.warnings]
+    assert len(warnings) == 1 and warnings[0][0] == 2 * SWEEP - 1  # the second sweep's last tile
+    assert warnings[0][1] == (
+        "no arena: calibration markers seen: 1, 3 (3 of 0-3 needed); every car is held until "
+        "they are"
+    )
+    run.renderer = Renderer(GEOMETRY, CameraModel(tilt_deg=20, noise_sigma=3))
+    scenes = [run.frame(cars) for _ in range(2 * SWEEP)]
+    warnings = [w for s in scenes for w in s.warnings]
+    assert len(warnings) == 1, warnings
+    assert re.fullmatch(
+        r"arena found again \(calibration markers [0-3, ]+\): cars are placed again", warnings[0]
+    )
+    check(scenes[-1], cars)
 
 
 def test_only_listed_markers_are_cars(renderers):
