@@ -47,7 +47,8 @@ class Track:
     """Pixels per frame index."""
     misses: int = 0
     look: np.ndarray | None = None
-    """The image's pixels in `look_box` when the marker was last decoded."""
+    """The image's pixels in `look_box` when the marker was last decoded; kept for markers
+    too thin for the search resolution, the ones that may fail to decode."""
     look_box: tuple[int, int, int, int] = (0, 0, 0, 0)
     """The marker's bounding box (x0, y0, x1, y1) then, with a pixel of margin."""
 
@@ -193,7 +194,9 @@ class CarTracker:
                 tr.velocity = ((shape[0] - tr.shape[0]) / gap, (shape[1] - tr.shape[1]) / gap)
                 tr.corners, tr.index, tr.shape, tr.misses = corners, index, shape, 0
                 tr.thickness = thin
-            if marker not in self.unmoved:
+            if self._detector.scale_for(thin, zoom=True) == self._detector.s:
+                tr.look = None  # the search resolution, then the full one, decode it every time
+            elif marker not in self.unmoved:
                 (x0, y0), (x1, y1) = corners.min(0).tolist(), corners.max(0).tolist()
                 x0, y0 = max(math.floor(x0) - 1, 0), max(math.floor(y0) - 1, 0)
                 x1, y1 = min(math.ceil(x1) + 2, w), min(math.ceil(y1) + 2, h)

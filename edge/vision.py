@@ -541,14 +541,12 @@ class Vision:
         """The line that says the arena is gone (no camera model: no car is placed, the control
         core holds every car), with why; and the one that says it is back. Gone means lost
         after a fit, or not found in two sweeps from the start."""
+        if self.calibrated != self._arena_missing or (self.fit.version == 0 and self._sweeps < 2):
+            return None
         seen = ", ".join(map(str, sorted(self.fit.corners))) or "none"
         if self.calibrated:
-            if not self._arena_missing:
-                return None
             self._arena_missing = self._camera_moved = False
             return f"arena found again (calibration markers {seen}): cars are placed again"
-        if self._arena_missing or (self.fit.version == 0 and self._sweeps < 2):
-            return None
         self._arena_missing = True
         why = "the camera moved, " if self._camera_moved else ""
         return (
@@ -564,7 +562,6 @@ class Vision:
         estimate, and a lens not described bends the markers' sides."""
         if self.fit.calibration is None or not self.calibrated:
             return None  # the camera's height is only estimated, the lens maybe not described
-        camera_height = self.fit.camera_height()
         thick = HEIGHT_MODULE_PX * self.detector.modules
         ready = [
             (m, tr)
@@ -579,6 +576,7 @@ class Vision:
         if not ready:
             return None
         marker, tr = ready[index % len(ready)]
+        camera_height = self.fit.camera_height()
         refined = self.detector.refine(img, tr.corners)
         side = float(
             _side_lengths(self.fit.to_arena(refined, self.heights.told(marker))[None]).mean()
