@@ -185,6 +185,10 @@ CONDITIONS = (
     Condition("tilt 20°", _camera(tilt_deg=20)),
     Condition("tilt 40°", _camera(tilt_deg=40)),
     Condition("tilt 60°", _camera(tilt_deg=60)),
+    Condition(
+        "tilt 60°, 3 m, a wider lens",
+        dataclasses.replace(_camera(tilt_deg=60), focal_px=None),
+    ),
     Condition("tilt 35°, roll 15°, yaw 10°", _camera(tilt_deg=35, roll_deg=15, yaw_deg=10)),
     Condition("markers 0.5×", _camera(), marker_scale=0.5),
     Condition("markers 2×", _camera(), marker_scale=2.0),
@@ -201,7 +205,7 @@ CONDITIONS = (
     ),
 )
 CONDITION_FRAMES = 1600
-"""Frames per condition: 13 conditions of 5 cars make 10^5 sightings after the warm-up."""
+"""Frames per condition: 14 conditions of 5 cars make 10^5 sightings after the warm-up."""
 OPENCV_EVERY = 7
 """Prime to MOVE_FRAMES + REST_FRAMES, so the reference sees cars at every phase of a step."""
 TIMING_FRAMES = 500
