@@ -97,8 +97,10 @@ SIZE_MARGIN = (0.8, 1.25)
 HEIGHT_MODULE_PX = 4.0
 """Car markers with at least this many full-resolution pixels per module are measured for the
 height check: cornerSubPix pulls the corners of smaller ones off by their inner pattern."""
-STILL_PX = 0.5
-"""Pixels per frame under which a car counts as standing still (motion blurs its edges)."""
+STILL_SHARE = 0.01
+"""Share of its marker's side a car may move per frame and count as standing still for the
+height check (motion blurs a marker's edges); a car crossing a cell in 200 ms at 40 FPS moves
+a fifth of its side per frame."""
 BUDGET_FLOOR_M = 0.004
 """The least error budget a sighting has (metres): corner refinement and image noise."""
 BUDGET_PIXELS = 1.0
@@ -571,7 +573,7 @@ class Vision:
             and m not in self.heights.done
             and m not in self.tracker.unmoved
             and tr.thickness >= thick
-            and math.hypot(*tr.velocity) < STILL_PX
+            and math.hypot(*tr.velocity) < STILL_SHARE * tr.shape[2]
         ]
         if not ready:
             return None
