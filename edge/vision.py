@@ -12,7 +12,9 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   small markers by their inner pattern.
 - Tracking (:mod:`udan.edge.tracking`): a known car is looked for only in a window around where its
   last sighting and velocity put it; the windows of cars of similar apparent size are stacked
-  into one image and searched in one call.
+  into one image and searched in one call. Markers too thin for full resolution (far markers
+  under a tilted camera) are searched at twice it, and a still car whose marker fails to decode
+  in a frame is seen by its unchanged look.
 - The rest of the image is swept one tile per frame (4 x 3 tiles overlapping by more than a
   marker), with everything already known painted out first: tracked cars, calibration markers,
   and cell markers that still look as they did when decoded (normalised correlation). So the
@@ -543,6 +545,7 @@ class Vision:
         """The line that says the arena is gone (no camera model: no car is placed, the control
         core holds every car), with why; and the one that says it is back. Gone means lost
         after a fit, or not found in two sweeps from the start."""
+        # said already (placed, or gone), or still looking for the arena at the start
         if self.calibrated != self._arena_missing or (self.fit.version == 0 and self._sweeps < 2):
             return None
         seen = ", ".join(map(str, sorted(self.fit.corners))) or "none"
