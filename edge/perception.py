@@ -329,7 +329,7 @@ class ProcessPerception(Perception):
         elif kind == "scene":
             if self._scene is not None:
                 self._superseded += 1
-            self._scene = body[0]
+            self._scene = body[0].after(self._scene)
         elif kind == "error":
             self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
             return
@@ -406,15 +406,25 @@ class _Server:
         self.not_before_ns = 0
         self.unsent = 0
         """Scenes the edge's full socket had no room for (it is not reading: they are old)."""
+        self.unsent_scene: Scene | None = None
+        """The last of them, whose warnings go with the next scene sent."""
         self.stopping = asyncio.Event()
 
-    def send(self, *message: Any) -> None:
-        """A message with the counts so far; a scene the socket has no room for is dropped."""
+    def send(self, *message: Any) -> bool:
+        """A message with the counts so far; a scene the socket has no room for is dropped.
+        Returns whether it was sent."""
         counts = (self.grabber.captured, self.grabber.dropped + self.unsent)
         try:
             self.sock.send(pickle.dumps((*message, *counts)))
         except BlockingIOError:
             self.unsent += message[0] == "scene"
+            return False
+        return True
+
+    def send_scene(self, scene: Scene) -> None:
+        """A scene (:meth:`send`); the warnings of one dropped go with the next."""
+        scene = scene.after(self.unsent_scene)
+        self.unsent_scene = None if self.send("scene", scene) else scene
 
     def control(self, data: bytes) -> None:
         """One message from the edge; an empty one (the edge has gone) is a stop."""
@@ -452,7 +462,7 @@ class _Server:
                 if frame is None or frame.t_capture_ns < self.not_before_ns:
                     continue
                 self.send("taken", frame.index, frame.t_capture_ns)
-                self.send("scene", self.vision.process(frame))
+                self.send_scene(self.vision.process(frame))
         finally:
             stopping.cancel()
             loop.remove_reader(self.sock.fileno())

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import logging
 import signal
 import time
 from collections.abc import Awaitable, Callable
@@ -30,6 +31,8 @@ from udan.edge.pauses import collect_between_steps
 from udan.edge.perception import FrameTaken, Perception
 from udan.edge.telemetry import Telemetry
 from udan.edge.vision import Scene
+
+log = logging.getLogger(__name__)
 
 ESTOP_GRACE_S = 0.05
 #: With no step for this long, collect anyway.
@@ -153,7 +156,11 @@ class EdgeShell:
         return event
 
     def _fold(self, scene: Scene, now: int) -> None:
-        """A scene into the core; telemetry of the frame and of the fleet's changes."""
+        """A scene into the core; telemetry of the frame, of the fleet's changes and of the
+        vision's warnings (each also one line on stderr)."""
+        for warning in scene.warnings:
+            log.warning("vision: %s", warning)
+            self.telemetry.event("vision_warning", message=warning)
         change = self.core.see(scene, self.link.ready_cars(), now)
         for car in change.joined:
             self.telemetry.event("fleet_join", car=car)
