@@ -317,13 +317,18 @@ class CarLink:
 
     # --- dispatch ---
     async def dispatch(
-        self, actions: Mapping[int, int], decision_ns: int, deadline_ns: int | None = None
+        self,
+        actions: Mapping[int, int],
+        decision_ns: int,
+        deadline_ns: int | None = None,
+        guidance: Mapping[int, ep.Guidance] | None = None,
     ) -> DispatchReport:
         """Send one step's commands, resend unacked ones while the deadline allows, report.
 
         Each command is valid until ``deadline_ns`` (default ``decision_ns + validity_ns``) in
-        the car's clock. Returns when every command sent is answered, or ``ack_grace_ns`` after
-        the deadline.
+        the car's clock, and carries the car's ``guidance`` if given (its target and measured
+        pose). Returns when every command sent is answered, or ``ack_grace_ns`` after the
+        deadline.
         Cars that are not ready are reported, not raised; an action outside 0-5 is a
         ``ValueError`` before anything is sent.
         """
@@ -344,7 +349,8 @@ class CarLink:
                 if now >= cutoff:
                     r.result = "too_late"
                     continue
-                frame = self._proto.encode_command(car_id, r.action, validity_ns=deadline - now)
+                guide = None if guidance is None else guidance.get(car_id)
+                frame = self._proto.encode_command(car_id, r.action, deadline - now, guide)
                 r.first_sent_ns = now
                 self._flights[car_id] = flight = _Flight(r, frame)
                 self._transmit(flight, report)

@@ -1,0 +1,118 @@
+"""Where real car bodies would touch, though the grid rules let the moves through.
+
+The arena's rules (:mod:`udan.envs.rules`) let a car enter a cell its occupant leaves in the
+same step. Real cars have bodies (22 cm on 31 cm cells in the HIL): a car entering a cell that
+another leaves *sideways* cuts the corner of the leaver's path and hits it, and a car following
+one that slips and stops short runs into it. Two answers, neither of which changes a decision
+(so the full loop still plays the simulation's moves):
+
+- :func:`corner_delays`: a car that enters a cell its occupant leaves in another direction starts
+  later, by ``CORNER_DELAY`` of a cell time per such link of a chain (carried in its command,
+  protocol section 3); straight trains start together. A ring of cars each entering the next
+  one's cell cannot be driven by bodies at all: its cars wait (the grid rules allow it, but it
+  needs four cars in a 2x2 block turning together, which the policies have not been seen to
+  do).
+- :func:`followers`: right after a step's dispatch, a car whose leader did not get its command
+  (it stays where it is) is stopped before it drives into it, and so is whoever follows it.
+- :func:`closing_in`: between steps, from the camera's frames, a car whose body would touch
+  another's within the horizon, at the speeds the last two frames show and never past the
+  target it drives to, is stopped (the guard). It is then re-centred like any car stopped
+  mid-move.
+
+Bodies are taken as squares turned by at most the settling tolerance (a few degrees): two cars
+touch when their centres are closer than ``reach`` along both axes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+Cell = tuple[int, int]
+CORNER_DELAY = 0.65
+"""Start delay of a car entering a cell its occupant leaves sideways, in cell times: the leaver
+must be 0.81 of the way out (its body clear of the corner, with 3 cm to spare) before the
+entrant is 0.19 of the way in, at constant speed; with the HIL's trapezoidal profile 0.46
+would do."""
+
+
+def corner_delays(moves: Mapping[int, tuple[Cell, Cell]]) -> tuple[dict[int, float], set[int]]:
+    """Start delays (cell times) of cars moving ``from -> to``, and the cars that must wait
+    instead (a ring, and every car entering a cell whose leaver waits)."""
+    leaver = {start: car for car, (start, end) in moves.items() if start != end}
+    delays: dict[int, float] = {}
+    waits: set[int] = set()
+
+    def delay(car: int, chain: tuple[int, ...]) -> float | None:
+        if car in delays:
+            return delays[car]
+        if car in chain or car in waits:
+            return None
+        start, end = moves[car]
+        ahead = leaver.get(end)
+        if start == end or ahead is None:
+            delays[car] = 0.0
+            return 0.0
+        after = delay(ahead, (*chain, car))
+        if after is None:
+            waits.add(car)
+            return None
+        ahead_start, ahead_end = moves[ahead]
+        way = (end[0] - start[0], end[1] - start[1])
+        same_way = way == (ahead_end[0] - ahead_start[0], ahead_end[1] - ahead_start[1])
+        delays[car] = after + (0.0 if same_way else CORNER_DELAY)
+        return delays[car]
+
+    for car in moves:
+        delay(car, ())
+    return {c: d for c, d in delays.items() if c not in waits}, waits
+
+
+def followers(leaders: Mapping[int, int], stays: set[int]) -> set[int]:
+    """Cars that enter a cell whose car stays (``leaders``: car -> the car whose cell it
+    enters), or whose car is such a car in turn."""
+    stopped: set[int] = set()
+    while more := {c for c, lead in leaders.items() if lead in stays | stopped} - stopped:
+        stopped |= more
+    return stopped
+
+
+def closing_in(
+    now: Mapping[int, tuple[float, float]],
+    before: Mapping[int, tuple[float, float, float]],
+    targets: Mapping[int, tuple[float, float]],
+    horizon_s: float,
+    reach: float,
+) -> set[int]:
+    """Cars to stop: those whose body would come within ``reach`` of another's (along both
+    axes) in the next ``horizon_s``, each moving at the speed it showed between ``before``
+    (x, y, seconds earlier) and ``now`` (x, y) towards its target, and never past it; of two
+    such cars, the one closing in (both when both are)."""
+    cars = sorted(now)
+    if len(cars) < 2:
+        return set()
+    steps = np.linspace(0.0, horizon_s, 5)
+    paths = {}
+    for car in cars:
+        x, y = now[car]
+        speed = 0.0
+        if car in before and car in targets:
+            bx, by, dt = before[car]
+            speed = math.hypot(x - bx, y - by) / dt if dt > 0 else 0.0
+        tx, ty = targets.get(car, (x, y))
+        left = math.hypot(tx - x, ty - y)
+        travel = np.minimum(speed * steps, left)
+        share = travel / left if left > 0 else np.zeros_like(steps)
+        paths[car] = np.stack([x + share * (tx - x), y + share * (ty - y)], 1)
+    stop = set()
+    for i, a in enumerate(cars):
+        for b in cars[i + 1 :]:
+            if not (np.abs(paths[a] - paths[b]) < reach).all(axis=1).any():
+                continue
+            for car, other in ((a, b), (b, a)):
+                here, there = paths[car], paths[other][0]
+                if math.dist(here[-1], there) < math.dist(here[0], there):
+                    stop.add(car)
+    return stop
