@@ -442,3 +442,33 @@ def test_cli_defaults_are_the_spec_timings() -> None:
         100,
         250,
     )
+
+
+async def test_a_guided_command_crosses_the_serial_line_and_a_bad_pose_is_dropped_and_counted(
+    edge: EdgeClient, make_car
+) -> None:
+    """A command's target and measured pose reach the motor controller over the pty (the car
+    drives from the measured pose to the target); one whose pose field is out of range is
+    malformed (checked before its tag, spec section 4; the vectors show one signed with the
+    session key): counted, unanswered, never executed."""
+    car = await make_car()
+    await edge.join(1)
+    cell = 2.8 / 9
+    target = ((4 + 0.5) * cell, (3 + 0.5) * cell, 0.0)  # the cell above the start (4, 4)
+    seen = ((4 + 0.5) * cell + 0.02, (4 + 0.5) * cell, 0.0)  # 2 cm right of (4, 4)'s centre
+    frame = edge.proto.encode_command(
+        1, ep.Action.UP, 500_000_000, ep.Guidance(target, seen, time.monotonic_ns())
+    )
+    edge.send(1, frame)
+    await edge.expect(ep.StatusReport, lambda s: s.done_seq == ep.decode(frame).seq)
+    drive = car.controller.drive
+    assert drive.corrections == 1 and drive.pose == (3, 4)
+    assert drive.belief == pytest.approx(target, abs=1e-3)
+    executed = car.counters()["executed"]
+    later = bytearray(edge.proto.encode_command(1, ep.Action.UP, 500_000_000))
+    later[23] = ep.GUIDE_POSE  # the pose given, its heading (bytes 34-35) beyond pi
+    later[34:36] = (3200).to_bytes(2, "big")
+    edge.send(1, bytes(later))
+    assert await edge.quiet(ep.Acked, 0.1) == []
+    counters = car.counters()
+    assert counters["rejected"]["malformed"] == 1 and counters["executed"] == executed
