@@ -3,8 +3,8 @@
 The arena's rules (:mod:`udan.envs.rules`) let a car enter a cell its occupant leaves in the
 same step. Real cars have bodies (22 cm on 31 cm cells in the HIL): a car entering a cell that
 another leaves *sideways* cuts the corner of the leaver's path and hits it, and a car following
-one that slips and stops short runs into it. Two answers, neither of which changes a decision
-(so the full loop still plays the simulation's moves):
+one that slips and stops short runs into it. Three answers, none of which changes a decision
+(so the full loop still plays the simulation's moves, unless a command is missed):
 
 - :func:`corner_delays`: a car that enters a cell its occupant leaves in another direction starts
   later, by ``CORNER_DELAY`` of a cell time per such link of a chain (carried in its command,
@@ -12,8 +12,9 @@ one that slips and stops short runs into it. Two answers, neither of which chang
   one's cell cannot be driven by bodies at all: its cars wait (the grid rules allow it, but it
   needs four cars in a 2x2 block turning together, which the policies have not been seen to
   do).
-- :func:`followers`: right after a step's dispatch, a car whose leader did not get its command
-  (it stays where it is) is stopped before it drives into it, and so is whoever follows it.
+- a car entering a cell its occupant leaves is sent its command only once the occupant accepted
+  its own (the link's dispatch, ``after``): a car that missed its command stays, and nobody is
+  driven into it.
 - :func:`closing_in`: between steps, from the camera's frames, a car whose body would touch
   another's within the horizon, at the speeds the last two frames show and never past the
   target it drives to, is stopped (the guard). It is then re-centred like any car stopped
@@ -68,15 +69,6 @@ def corner_delays(moves: Mapping[int, tuple[Cell, Cell]]) -> tuple[dict[int, flo
     for car in moves:
         delay(car, ())
     return {c: d for c, d in delays.items() if c not in waits}, waits
-
-
-def followers(leaders: Mapping[int, int], stays: set[int]) -> set[int]:
-    """Cars that enter a cell whose car stays (``leaders``: car -> the car whose cell it
-    enters), or whose car is such a car in turn."""
-    stopped: set[int] = set()
-    while more := {c for c, lead in leaders.items() if lead in stays | stopped} - stopped:
-        stopped |= more
-    return stopped
 
 
 def closing_in(

@@ -23,9 +23,11 @@ neighbour; the moves through the same safety filter as the policy's), and the st
 those moves and a fresh frame again, for at most ``MotionRules.rounds`` rounds. Every command,
 the steps' and the re-centring's, carries the car's measured pose and its target cell's centre
 (:class:`udan.edge.protocol.Guidance`), so the car's controller drives from where it is to where
-it should be and errors do not add up (docs/motion.md). Real bodies need two things more
-(:mod:`udan.edge.bodies`): a car entering a cell another leaves sideways starts later, and
-between steps :meth:`ControlCore.guard` stops a car about to touch another.
+it should be and errors do not add up (docs/motion.md). Real bodies need more
+(:mod:`udan.edge.bodies`): a car entering a cell another leaves sideways starts later, a car
+entering a cell another leaves is sent its command only once that car accepted its own
+(``Decision.after``, honoured by the link), and between steps :meth:`ControlCore.guard` stops a
+car about to touch another.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from udan.edge.bodies import closing_in, corner_delays, followers
+from udan.edge.bodies import closing_in, corner_delays
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Cell, Change, Fleet, FleetState, Seen
 from udan.edge.geometry import ArenaGeometry
@@ -162,7 +164,6 @@ class ControlCore:
         self._rounds = 0  # re-centring rounds since the last step
         self._before: dict[int, Seen] = {}  # each car's sighting before the last one
         self._targets: dict[int, tuple[float, float]] = {}  # where the last commands drive to
-        self._leaders: dict[int, int] = {}  # car -> the car whose cell it enters this step
         self.static: dict[str, frozenset[Cell]] | None = None  # the last scene's cell markers
         self.uncertain: set[int] = set()  # cars the last scene could not place in a cell
         self.not_before_ns = 0  # frames captured earlier are stale: not analysed
@@ -346,17 +347,6 @@ class ControlCore:
             return Guidance(self.motion.target(cell), delay=delay)
         return Guidance(self.motion.target(cell), seen[:3], seen[3], delay)
 
-    def unfollowed(self, report: DispatchReport) -> dict[int, int]:
-        """Right after a step's dispatch: a stop for every car entering a cell whose car did
-        not get its command (it stays, and the follower would drive into it), and for the
-        cars following those in turn."""
-        stays = {car for car, r in report.cars.items() if not r.acked}
-        commands = dict.fromkeys(sorted(followers(self._leaders, stays) - stays), STOP)
-        for car in commands:
-            self._targets.pop(car, None)
-        self.fleet.command.update(commands)
-        return commands
-
     def guard(self, scene: Scene, finished: Callable[[int], bool]) -> dict[int, int]:
         """Between steps, on every frame: a stop for each car whose body is about to touch
         another's (:func:`udan.edge.bodies.closing_in`: a leader that slipped and stands short,
@@ -417,7 +407,7 @@ class ControlCore:
         }
         delays, waits = corner_delays(moves)
         leaving = {start: car for car, (start, end) in moves.items() if start != end}
-        self._leaders = {
+        after = {
             car: leaving[end]
             for car, (start, end) in moves.items()
             if start != end and end in leaving and car not in waits
@@ -429,7 +419,7 @@ class ControlCore:
             car: self._guide(targets[car], state.poses.get(car), delays.get(car, 0.0))
             for car in decision.cars
         }
-        decision = replace(decision, guidance=guidance)
+        decision = replace(decision, guidance=guidance, after=after)
         self._targets = {car: g.target[:2] for car, g in guidance.items()}
         self.fleet.stepped()
         decided_ns = self._clock()
@@ -518,6 +508,8 @@ class ControlCore:
         """A new episode: no car, empty memories, frames captured before ``now`` are stale."""
         self.policy_step.reset()
         self._rehearsed = False
+        self._rounds = 0
+        self._targets = {}
         self.fleet.reset()
         self.not_before_ns = now
 

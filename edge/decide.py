@@ -60,6 +60,9 @@ class Decision:
     guidance: Mapping[int, Guidance] = field(default_factory=dict)
     """Per car: its target cell's centre and its measured pose, for the command (filled by
     the control core, which knows where the cells are and where the camera saw the cars)."""
+    after: Mapping[int, int] = field(default_factory=dict)
+    """Car -> the car whose cell it enters as that one leaves: its command goes out only once
+    that car accepted its own (filled by the control core)."""
 
 
 def _blockers(

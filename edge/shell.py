@@ -192,7 +192,8 @@ class EdgeShell:
             if due is None:
                 stops = core.guard(scene, self.link.move_finished)
                 if stops:  # a body about to touch another: stopped where it is
-                    await self._stop(stops, "guard_stop")
+                    report = await self.link.dispatch(stops, time.monotonic_ns())
+                    self.telemetry.event("guard_stop", cars=list(stops), on_time=report.on_time)
                     continue
                 # the next frame may decide; its "taken" news comes in time to rehearse on only
                 # when this loop wakes within the frame's analysis, so rehearse now as well
@@ -217,13 +218,7 @@ class EdgeShell:
     async def _step(self, state: FleetState, state_ns: int) -> None:
         """One decision and its dispatch, with the step's telemetry."""
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
-        report = await self.link.dispatch(commands, decided_ns, guidance=decision.guidance)
+        report = await self.link.dispatch(
+            commands, decided_ns, guidance=decision.guidance, after=decision.after
+        )
         self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
-        stops = self.core.unfollowed(report)
-        if stops:  # their leader missed its command and stays: they must not drive into it
-            await self._stop(stops, "unfollowed")
-
-    async def _stop(self, stops: dict[int, int], why: str) -> None:
-        """Stop these cars now (between steps), and say why."""
-        report = await self.link.dispatch(stops, time.monotonic_ns())
-        self.telemetry.event(why, cars=list(stops), on_time=report.on_time)

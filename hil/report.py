@@ -139,10 +139,7 @@ def motion_summary(records: list[dict[str, Any]], world: dict[str, Any]) -> dict
         "offcentre_by_minute": by_minute,
         "recentre_rounds": len(rounds),
         "recentred_per_car_per_min": {c: round(recentred[c] / span_min, 2) for c in cars},
-        "stops": {
-            why: sum(len(r["cars"]) for r in records if r["kind"] == why)
-            for why in ("guard_stop", "unfollowed")
-        },
+        "guard_stops": sum(len(r["cars"]) for r in records if r["kind"] == "guard_stop"),
         "longest_uncommanded_s": _longest_uncommanded(records),
     }
 

@@ -279,11 +279,11 @@ class HilWorld:
             1,
         )  # fmt: skip
         touching = set()
-        for i, j in itertools.combinations(range(len(cars)), 2):
+        first, second = np.triu_indices(len(cars), 1)
+        close = may_touch(poses[:, first], poses[:, second]).any(axis=0)
+        for i, j in zip(first[close].tolist(), second[close].tolist(), strict=True):
             a, b = poses[:, i], poses[:, j]
             near = may_touch(a, b)
-            if not near.any():
-                continue
             contact = np.zeros(len(times), bool)
             contact[near] = bodies_touch(a[near], b[near])
             pair = (cars[i], cars[j])

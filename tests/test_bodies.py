@@ -3,7 +3,7 @@ the guard stops when one is about to touch another (edge/bodies.py)."""
 
 from __future__ import annotations
 
-from udan.edge.bodies import CORNER_DELAY, closing_in, corner_delays, followers
+from udan.edge.bodies import CORNER_DELAY, closing_in, corner_delays
 from udan.edge.core import MotionRules
 from udan.edge.geometry import ArenaGeometry
 
@@ -63,10 +63,3 @@ def test_the_guard_leaves_a_straight_train_and_parallel_lanes_alone_and_stops_a_
     before = {1: (x, 7.2 * CELL + 0.05, 0.025), 2: (x, 5.8 * CELL - 0.05, 0.025)}
     both = {1: (x, 6.5 * CELL), 2: (x, 6.5 * CELL)}
     assert closing_in(head_on, before, both, 0.08, REACH) == {1, 2}
-
-
-def test_a_car_whose_leader_stays_is_stopped_and_so_is_its_own_follower() -> None:
-    leaders = {2: 1, 3: 2, 5: 4}  # a train 3 -> 2 -> 1, and 5 behind 4
-    assert followers(leaders, {1}) == {2, 3}
-    assert followers(leaders, {2}) == {3}
-    assert followers(leaders, {6}) == set()

@@ -101,7 +101,7 @@ def test_level_0_is_the_exact_grid_the_earlier_world_drew() -> None:
 
 
 def test_an_unknown_motion_level_is_one_line() -> None:
-    with pytest.raises(EnvConfigError, match="unknown motion level 'bumpy' .*0, low, lab, rough"):
+    with pytest.raises(EnvConfigError, match=r"unknown motion level 'bumpy' .*0, low, lab, rough"):
         motion_level("bumpy")
 
 
