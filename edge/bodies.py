@@ -11,7 +11,9 @@ one that slips and stops short runs into it. Three answers, none of which change
   protocol section 3); straight trains start together. A ring of cars each entering the next
   one's cell cannot be driven by bodies at all: its cars wait (the grid rules allow it, but it
   needs four cars in a 2x2 block turning together, which the policies have not been seen to
-  do).
+  do), and so does a chain that would need more than ``MAX_DELAY``. Re-centring moves are
+  checked by :func:`crossing`: of two whose paths would sweep through each other, one waits a
+  round.
 - a car entering a cell its occupant leaves is sent its command only once the occupant accepted
   its own (the link's dispatch, ``after``): a car that missed its command stays, and nobody is
   driven into it.
@@ -32,11 +34,15 @@ from collections.abc import Mapping
 import numpy as np
 
 Cell = tuple[int, int]
-CORNER_DELAY = 0.65
-"""Start delay of a car entering a cell its occupant leaves sideways, in cell times: the leaver
-must be 0.81 of the way out (its body clear of the corner, with 3 cm to spare) before the
-entrant is 0.19 of the way in, at constant speed; with the HIL's trapezoidal profile 0.46
-would do."""
+CORNER_DELAY = 1.0
+"""Start delay of a car entering a cell its occupant leaves sideways, in cell times: a whole
+move, so the leaver has arrived before the entrant starts. Nominal timing would allow less (at
+constant speed the leaver must be 0.81 of the way out, its body clear of the corner with 3 cm
+to spare, before the entrant is 0.19 of the way in: 0.62; with the HIL's trapezoid 0.46), but
+a leaver's move starts late when its car is slow to hand the command to its motors, and a
+slipping leaver is slow all the way (both seen on a loaded machine)."""
+MAX_DELAY = 2.0
+"""The longest start delay a command carries (protocol section 3): a chain needing more waits."""
 
 
 def corner_delays(moves: Mapping[int, tuple[Cell, Cell]]) -> tuple[dict[int, float], set[int]]:
@@ -63,12 +69,48 @@ def corner_delays(moves: Mapping[int, tuple[Cell, Cell]]) -> tuple[dict[int, flo
         ahead_start, ahead_end = moves[ahead]
         way = (end[0] - start[0], end[1] - start[1])
         same_way = way == (ahead_end[0] - ahead_start[0], ahead_end[1] - ahead_start[1])
-        delays[car] = after + (0.0 if same_way else CORNER_DELAY)
-        return delays[car]
+        wait = after + (0.0 if same_way else CORNER_DELAY)
+        if wait > MAX_DELAY:
+            waits.add(car)
+            return None
+        delays[car] = wait
+        return wait
 
     for car in moves:
         delay(car, ())
     return {c: d for c, d in delays.items() if c not in waits}, waits
+
+
+def crossing(
+    paths: Mapping[int, tuple[tuple[float, float], tuple[float, float]]],
+    standing: Mapping[int, tuple[float, float]],
+    reach: float,
+) -> set[int]:
+    """Of cars driving straight ``from -> to`` (metres) at once, those that must wait a round.
+
+    Re-centring moves are not grid moves: a car sent to complete a move it was cut short in
+    may drive towards a car that is still where it stopped, and two cars off towards each
+    other can sweep their corners through each other. In id order, a car moves only if its
+    path keeps clear of every car that does not move this round (``standing``, and the cars of
+    ``paths`` not let go yet, where they are) and of every point of the paths let go before it
+    (their timing is not known well enough to count on it): never closer than ``reach`` along
+    both axes, unless already that close at the start and getting no closer."""
+    share = np.linspace(0.0, 1.0, 9)[:, None]
+    points = {c: np.add(a, share * np.subtract(b, a)) for c, (a, b) in paths.items()}
+
+    def clear(mine: np.ndarray, theirs: np.ndarray) -> bool:
+        apart = np.abs(mine[:, None, :] - theirs[None, :, :]).max(axis=2)
+        return bool(apart.min() >= min(reach, float(apart[0, 0])))
+
+    going: list[int] = []
+    for car in sorted(paths):
+        still = [np.array([xy]) for c, xy in standing.items() if c != car]
+        still += [points[c][:1] for c in paths if c != car and c not in going]
+        if all(clear(points[car], other) for other in still) and all(
+            clear(points[car], points[c]) for c in going
+        ):
+            going.append(car)
+    return set(paths) - set(going)
 
 
 def closing_in(

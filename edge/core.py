@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from udan.edge.bodies import closing_in, corner_delays
+from udan.edge.bodies import closing_in, corner_delays, crossing
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Cell, Change, Fleet, FleetState, Seen
 from udan.edge.geometry import ArenaGeometry
@@ -319,11 +319,16 @@ class ControlCore:
             others=others,
         )
         dest = dict(zip(placed, map(tuple, filtered.dest.tolist()), strict=True))
+        paths = {
+            car: (sighted[car].xy, self.motion.target(dest[car])[:2]) for car in off if car in dest
+        }
+        standing = {car: s.xy for car, s in sighted.items() if car not in paths}
+        crossed = crossing(paths, standing, self.motion.reach)  # they wait for the next round
         guidance = {}
         for car in placed:
             cell = dest[car]
             taken = any(here[c] == cell for c in placed if c != car)
-            if car not in sighted or taken:  # unseen, or nowhere to go: it stays as it is
+            if car not in sighted or taken or car in crossed:  # it stays as it is, this round
                 continue
             guidance[car] = self._guide(cell, fleet.pose.get(car))
             if car in off:

@@ -3,7 +3,7 @@ the guard stops when one is about to touch another (edge/bodies.py)."""
 
 from __future__ import annotations
 
-from udan.edge.bodies import CORNER_DELAY, closing_in, corner_delays
+from udan.edge.bodies import CORNER_DELAY, closing_in, corner_delays, crossing
 from udan.edge.core import MotionRules
 from udan.edge.geometry import ArenaGeometry
 
@@ -27,6 +27,9 @@ def test_entering_a_cell_left_sideways_waits_for_the_leaver_per_corner_of_the_ch
     delays, waits = corner_delays(moves)
     assert waits == set()
     assert delays == {1: 0.0, 2: CORNER_DELAY, 3: CORNER_DELAY, 4: 2 * CORNER_DELAY, 5: 0.0}
+    # a third corner would make the start delay longer than a command can carry: it waits
+    delays, waits = corner_delays({**moves, 6: ((1, 2), (1, 1)), 7: ((2, 2), (1, 2))})
+    assert 6 in delays and waits == {7}
 
 
 def test_a_ring_cannot_be_driven_and_whoever_enters_a_ring_cell_waits_too() -> None:
@@ -63,3 +66,25 @@ def test_the_guard_leaves_a_straight_train_and_parallel_lanes_alone_and_stops_a_
     before = {1: (x, 7.2 * CELL + 0.05, 0.025), 2: (x, 5.8 * CELL - 0.05, 0.025)}
     both = {1: (x, 6.5 * CELL), 2: (x, 6.5 * CELL)}
     assert closing_in(head_on, before, both, 0.08, REACH) == {1, 2}
+
+
+def test_recentring_paths_that_would_sweep_through_each_other_go_one_at_a_time() -> None:
+    x = 0.5 * CELL
+    # car 3 slipped and stands 13 cm short of (5, 0)'s centre, car 1 stopped behind it: car 3
+    # completes its move first (away from car 1); car 1 would drive into it, and waits
+    paths = {
+        1: ((x, 6.5 * CELL + 0.1), (x, 6.5 * CELL)),
+        3: ((x, 5.5 * CELL + 0.13), (x, 5.5 * CELL)),
+    }
+    assert crossing(paths, {}, REACH) == {1}
+    # diagonal neighbours, both 6 cm off towards each other: each moves away from the other
+    a, b = (1.5 * CELL + 0.06, 2.5 * CELL + 0.06), (2.5 * CELL - 0.06, 3.5 * CELL - 0.06)
+    diagonal = {4: (a, (1.5 * CELL, 2.5 * CELL)), 2: (b, (2.5 * CELL, 3.5 * CELL))}
+    assert crossing(diagonal, {}, REACH) == set()
+    # side by side in their own lanes: both go; towards a car that stands: it waits
+    lanes = {
+        1: ((x, 4.4 * CELL), (x, 4.5 * CELL)),
+        2: ((x + CELL, 4.6 * CELL), (x + CELL, 4.5 * CELL)),
+    }
+    assert crossing(lanes, {}, REACH) == set()
+    assert crossing({1: ((x, 4.6 * CELL), (x, 4.5 * CELL))}, {7: (x, 3.75 * CELL)}, REACH) == {1}

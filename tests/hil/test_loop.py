@@ -197,6 +197,26 @@ def test_a_car_stopped_mid_move_is_recentred_and_back_under_the_policy_within_2_
     assert s["motion"]["offcentre_max_mm_at_decisions"] <= 30
 
 
+@pytest.mark.slow
+def test_lab_cars_are_kept_on_their_cells_without_a_collision(tmp_path: Path) -> None:
+    """A minute of five `lab` cars (errors, slips; cells of 100 ms): every step decides on
+    cars within the settling tolerance, the cars that strayed beyond it were re-centred, no
+    body touched another, and the drift of the last minute is no worse than the first's."""
+    s = run_hil(
+        tmp_path, "--cars", "5", "--obstacles", "0-9", "--duration", "60",
+        "--motion-error", "lab", "--cell-time-ms", "100", timeout=300,
+    )  # fmt: skip
+    _assert_safe(s)
+    head, motion = s["headline"], s["motion"]
+    assert head["offcentre_max_mm_at_decisions"] <= 30
+    assert head["heading_max_deg_at_decisions"] <= 5
+    assert motion["recentre_rounds"] > 0 and head["offcentre_max_mm_seen"] > 30
+    minutes = motion["offcentre_by_minute"]
+    assert minutes[-1]["offcentre_p50_mm"] <= 2 * minutes[0]["offcentre_p50_mm"] + 2
+    assert max(head["longest_uncommanded_s"].values()) < 2
+    assert (tmp_path / "motion.png").stat().st_size > 1000
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
