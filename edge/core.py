@@ -375,8 +375,13 @@ class ControlCore:
         return commands
 
     def recentred(self, recentring: Recentring, report: DispatchReport) -> dict[str, Any]:
-        """What became of a re-centring round's commands; its telemetry record."""
+        """What became of a re-centring round's commands; its telemetry record. A round in
+        which no car sent to a centre got its command does not count against the rounds: it
+        did not try (the link drops a car that stays silent, so this cannot go on for ever)."""
         self.fleet.command.update(recentring.commands)
+        sent = [report.cars[c] for c in recentring.cars if c in recentring.guidance]
+        if sent and not any(r.acked for r in sent):
+            self._rounds -= 1
         cars = report.cars.values()
         return {
             "t_ns": report.decision_ns,

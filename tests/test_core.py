@@ -475,3 +475,20 @@ def test_the_guard_stops_a_car_closing_in_on_one_stopped_short_and_only_that_one
     car1_at(50, 0.0, (5, 1), 0.0)
     frame = car1_at(75, 0.3 * cell, (5, 1), 0.0)
     assert core.guard(frame, only_1_moving) == {}
+
+
+def test_a_recentring_round_whose_commands_all_missed_does_not_count(
+    core: ControlCore, clock: Clock
+) -> None:
+    """The rounds bound a car that cannot be moved, not a link that lost the commands."""
+    dues = []
+    for i in range(core.motion.rounds + 2):
+        clock.ns = i * 100 * MS
+        frame = scene(clock.ns, TWO, offsets={12: (0.06, 0.0)})
+        core.see(frame, ready={1, 2}, now=clock.ns)
+        due = core.due(frame, done, clock.ns)
+        dues.append(due)
+        if isinstance(due, Recentring):
+            core.recentred(due, all_acked(due.commands, clock.ns, missed=[2] if i < 2 else []))
+        core.wait_for_moves(clock.ns)
+    assert [type(d) for d in dues] == [Recentring] * (core.motion.rounds + 2)
