@@ -138,6 +138,17 @@ def _recentring_action(
     return next((steps[c] for c in order if allowed(c)), WAIT)
 
 
+def _late_executions(report: DispatchReport) -> int:
+    """An audit of the cars: a command a car executed (ACCEPTED, not a duplicate's ack, which
+    carries the copy's later receive time) must have reached it by its deadline, judged in the
+    car's own clock (the edge-clock estimate is only good to half a round trip)."""
+    return sum(
+        r.car_rx_us > r.car_deadline_us
+        for r in report.cars.values()
+        if r.acked and r.result == "accepted"
+    )
+
+
 def _outcome(command: CommandReport) -> str:
     """on_time (the car accepted it in time), missed, or not_ready (nothing was sent)."""
     if command.acked:
@@ -382,7 +393,6 @@ class ControlCore:
         sent = [report.cars[c] for c in recentring.cars if c in recentring.guidance]
         if sent and not any(r.acked for r in sent):
             self._rounds -= 1
-        cars = report.cars.values()
         return {
             "t_ns": report.decision_ns,
             "frame": recentring.frame,
@@ -396,9 +406,7 @@ class ControlCore:
             "missed": report.missed,
             "not_ready": report.not_ready,
             "late_sends": report.late_sends,
-            "late_executions": sum(
-                r.car_rx_us > r.car_deadline_us for r in cars if r.acked and r.result == "accepted"
-            ),
+            "late_executions": _late_executions(report),
             "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
         }
 
@@ -450,12 +458,7 @@ class ControlCore:
         self.fleet.command.update(commands)
         cars = report.cars.values()
         received = [r.car_received_ns for r in cars if r.acked]
-        # an audit of the car: a command it executed (ACCEPTED, not a duplicate's ack, which
-        # carries the copy's later receive time) must have reached it by its deadline, judged
-        # in the car's own clock (the edge-clock estimate is only good to half a round trip)
-        late = sum(
-            r.car_rx_us > r.car_deadline_us for r in cars if r.acked and r.result == "accepted"
-        )
+        late = _late_executions(report)
         acked = [r.acked_ns for r in cars if r.acked]
         every = len(commands)
         return {
