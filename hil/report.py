@@ -107,10 +107,14 @@ def motion_summary(records: list[dict[str, Any]], world: dict[str, Any]) -> dict
     t0 = steps[0]["t_ns"]
     minutes: dict[int, list[float]] = defaultdict(list)
     headings: dict[int, list[float]] = defaultdict(list)
+    per_car: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(lambda: [0, 0]))
     for r in steps:
-        for mm, degrees in r["offsets"].values():
-            minutes[(r["t_ns"] - t0) // MINUTE_NS].append(mm)
-            headings[(r["t_ns"] - t0) // MINUTE_NS].append(abs(degrees))
+        minute = (r["t_ns"] - t0) // MINUTE_NS
+        for car, (mm, degrees) in r["offsets"].items():
+            minutes[minute].append(mm)
+            headings[minute].append(abs(degrees))
+            worst = per_car[car][minute]
+            worst[0], worst[1] = max(worst[0], mm), max(worst[1], abs(degrees))
     by_minute = [
         {
             "minute": m,
@@ -137,6 +141,13 @@ def motion_summary(records: list[dict[str, Any]], world: dict[str, Any]) -> dict
         "offcentre_max_mm_seen": max([*seen, *(m["offcentre_max_mm"] for m in by_minute)]),
         "true_offcentre_max_mm": round(1000 * max(true), 1) if true else None,
         "offcentre_by_minute": by_minute,
+        "per_car_by_minute": {
+            car: [
+                {"minute": m, "offcentre_max_mm": w[0], "heading_max_deg": w[1]}
+                for m, w in sorted(per_car[car].items())
+            ]
+            for car in sorted(per_car, key=int)
+        },
         "recentre_rounds": len(rounds),
         "recentred_per_car_per_min": {c: round(recentred[c] / span_min, 2) for c in cars},
         "guard_stops": sum(len(r["cars"]) for r in records if r["kind"] == "guard_stop"),
