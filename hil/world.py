@@ -74,7 +74,8 @@ _KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
 Scene = tuple[np.ndarray, dict[int, Pose], dict[int, Trajectory]]
 CONTACT_STEP_NS = 5_000_000
 """Contacts are sampled this often while cars move (7 mm at the fastest cars' top speed)."""
-STOPS_KEPT = 1000
+STOPS_KEPT = 200
+"""Moves cut short, and contacts, kept for the state (its answer fits one datagram)."""
 
 
 @dataclass(frozen=True)
@@ -219,7 +220,7 @@ class HilWorld:
                 here = move.at(now)
                 self.pose[car_id] = here
                 self.counts["aborted"] += 1
-                self.stops.append([car_id, now, *here])
+                self.stops.append([car_id, now, *(round(v, 4) for v in here)])
         self._changed()
 
     def end(self, car_id: int) -> bool:
@@ -290,7 +291,8 @@ class HilWorld:
             before = np.concatenate([[pair in self._touching], contact[:-1]])
             for k in np.flatnonzero(contact & ~before):
                 self.counts["collisions"] += 1
-                self.contacts.append([int(times[k]), *pair, *a[k].tolist(), *b[k].tolist()])
+                poses = np.round(np.concatenate([a[k], b[k]]), 4).tolist()
+                self.contacts.append([int(times[k]), *pair, *poses])
             if contact[-1]:
                 touching.add(pair)
         self._touching = touching
