@@ -13,8 +13,8 @@ and how often they were re-centred (``--motion-error``: :mod:`udan.hil.motion`),
 table through the full loop beside the pure simulation of the same policy on the same layouts.
 
 Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
-parse, a missing model) is one line on stderr and exit code 2, and every process the harness
-started is stopped.
+parse, an unknown motion level, a missing model) is one line on stderr and exit code 2, and
+every process the harness started is stopped.
 """
 
 from __future__ import annotations
