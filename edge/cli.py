@@ -116,6 +116,10 @@ def _parser() -> argparse.ArgumentParser:
         "--settle-deg", type=float, default=5.0,
         help="... or turned farther than this from facing up",
     )  # fmt: skip
+    run.add_argument(
+        "--body-mm", type=float, default=220.0,
+        help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -206,7 +210,12 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    motion = MotionRules(args.settle_mm / 1000, math.radians(args.settle_deg), geometry=geometry)
+    motion = MotionRules(
+        args.settle_mm / 1000,
+        math.radians(args.settle_deg),
+        geometry=geometry,
+        body_m=args.body_mm / 1000,
+    )
     core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion)
     shell = EdgeShell(perception, link, core, telemetry, config)
     play = None
@@ -324,6 +333,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"--settle-mm {args.settle_mm:g} / --settle-deg {args.settle_deg:g}: a tolerance "
                 f"must be above 0 and below half a cell ({1000 * _half_cell_m():.0f} mm) "
                 "and 90 degrees"
+            )
+        if not 0 < args.body_mm < 2000 * _half_cell_m():
+            raise UsageError(
+                f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
+                f"cell ({2000 * _half_cell_m():.0f} mm)"
             )
         if args.realtime:
             _realtime()
