@@ -496,11 +496,13 @@ class ControlCore:
         }
 
     def _offsets(self, state: FleetState) -> dict[str, list[float]]:
-        """Per car seen in the step's frame: [mm from its cell's centre, degrees from facing
-        up] (docs/motion.md: what the HIL report plots)."""
+        """Per car the step decides on and saw in its frame: [mm from its cell's centre,
+        degrees from facing up] (docs/motion.md: what the HIL report plots). A car the step
+        holds (still in a move when the step period ran out, or uncertain) is left out: the
+        policy does not act on it."""
         out = {}
         for car, (x, y, heading, taken_ns) in state.poses.items():
-            if taken_ns != state.t_capture_ns or car not in state.cells:
+            if taken_ns != state.t_capture_ns or car not in state.cells or car in state.moving:
                 continue
             cx, cy, _ = self.motion.target(state.cells[car])
             off = math.hypot(x - cx, y - cy)
