@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -27,7 +28,7 @@ from typing import Any
 
 from udan.edge.calibration import VisionError
 from udan.edge.camera import CameraError, FrameGrabber, open_camera
-from udan.edge.core import ControlCore
+from udan.edge.core import ControlCore, MotionRules
 from udan.edge.decide import DecisionStep, TaskError, task_of
 from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from udan.edge.fleet import Fleet
@@ -107,6 +108,18 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="seconds to run (default: until Ctrl-C)")
     run.add_argument("--step-timeout", type=float, default=1.0, help="longest step wait (s)")
     run.add_argument("--lost", type=float, default=0.5, help="a car unseen this long leaves (s)")
+    run.add_argument(
+        "--settle-mm", type=float, default=30.0,
+        help="a car farther than this from its cell's centre is re-centred before a step",
+    )  # fmt: skip
+    run.add_argument(
+        "--settle-deg", type=float, default=5.0,
+        help="... or turned farther than this from facing up",
+    )  # fmt: skip
+    run.add_argument(
+        "--body-mm", type=float, default=220.0,
+        help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -129,6 +142,11 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
     sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
+
+
+def _half_cell_m() -> float:
+    """Half a cell's side (metres): a car farther than that off centre is in another cell."""
+    return ArenaGeometry().cell_m / 2
 
 
 def _writable(path: Path | None, what: str) -> None:
@@ -192,7 +210,13 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
+    motion = MotionRules(
+        args.settle_mm / 1000,
+        math.radians(args.settle_deg),
+        geometry=geometry,
+        body_m=args.body_mm / 1000,
+    )
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion)
     shell = EdgeShell(perception, link, core, telemetry, config)
     play = None
     if world is not None:
@@ -304,6 +328,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
         _writable(args.video, "--video")
+        if not (0 < args.settle_mm < 1000 * _half_cell_m() and 0 < args.settle_deg < 90):
+            raise UsageError(
+                f"--settle-mm {args.settle_mm:g} / --settle-deg {args.settle_deg:g}: a tolerance "
+                f"must be above 0 and below half a cell ({1000 * _half_cell_m():.0f} mm) "
+                "and 90 degrees"
+            )
+        if not 0 < args.body_mm < 2000 * _half_cell_m():
+            raise UsageError(
+                f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
+                f"cell ({2000 * _half_cell_m():.0f} mm)"
+            )
         if args.realtime:
             _realtime()
         if args.sim:

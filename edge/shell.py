@@ -6,8 +6,10 @@ own process by default (:class:`udan.edge.perception.ProcessPerception`: the cam
 there, compact scenes over a socket read by the loop), so the dispatcher's retransmission timers
 and the scene never wait for each other's turn at the interpreter lock.
 
-When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`). All commands
-of a step leave at once, each valid until the decision + 10 ms.
+When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`), and so
+is when cars off their cells' centres are re-centred first (a :class:`udan.edge.core.Recentring`
+round, dispatched like a step). All commands of a step leave at once, each valid until the
+decision + 10 ms.
 
 Whatever ends the run — its duration, Ctrl-C, SIGTERM, the end of a video, or an exception — the
 ``finally`` sends an emergency stop to every joined car before anything is closed.
@@ -24,7 +26,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from udan.edge.core import ControlCore, StepTiming
+from udan.edge.core import ControlCore, Recentring, StepTiming
 from udan.edge.fleet import FleetState
 from udan.edge.link import CarLink
 from udan.edge.pauses import collect_between_steps
@@ -193,20 +195,37 @@ class EdgeShell:
             if scene is None:
                 continue
             now = time.monotonic_ns()
-            state = core.due(scene, self.link.move_finished, now)
-            if state is None:
+            due = core.due(scene, self.link.move_finished, now)
+            if due is None:
+                stops = core.guard(scene, self.link.move_finished)
+                if stops:  # a body about to touch another: stopped where it is
+                    report = await self.link.dispatch(stops, time.monotonic_ns())
+                    self.telemetry.event("guard_stop", cars=list(stops), on_time=report.on_time)
+                    continue
                 # the next frame may decide; its "taken" news comes in time to rehearse on only
                 # when this loop wakes within the frame's analysis, so rehearse now as well
                 core.warm_up(self.link.move_finished)
                 continue
-            await self._step(state, now)
-            self._collect()
-            steps += 1
+            if isinstance(due, Recentring):
+                await self._recentre(due)
+            else:
+                await self._step(due, now)
+                self._collect()
+                steps += 1
             core.wait_for_moves(time.monotonic_ns())
         return steps
+
+    async def _recentre(self, recentring: Recentring) -> None:
+        """A re-centring round: its commands, dispatched like a step's, with their record."""
+        decided_ns = time.monotonic_ns()
+        commands, guidance = recentring.commands, recentring.guidance
+        report = await self.link.dispatch(commands, decided_ns, guidance=guidance)
+        self.telemetry.recentre(self.core.recentred(recentring, report))
 
     async def _step(self, state: FleetState, state_ns: int) -> None:
         """One decision and its dispatch, with the step's telemetry."""
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
-        report = await self.link.dispatch(commands, decided_ns)
+        report = await self.link.dispatch(
+            commands, decided_ns, guidance=decision.guidance, after=decision.after
+        )
         self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))

@@ -113,6 +113,9 @@ class Telemetry:
         self.memory_start_mb = resident_mb()
         self.memory: list[tuple[float, float]] = []  # (seconds since start, MB) every 10 s
         self.cars = 0
+        self.motion = {"offcentre_mm": 0.0, "heading_deg": 0.0, "seen_offcentre_mm": 0.0}
+        """The largest off-centre distance and heading error of a car a step decided on, and
+        the largest one the camera showed before a re-centring."""
         self._file = open(jsonl, "w", encoding="utf-8") if jsonl else None  # noqa: SIM115
         self._live = live
         self._stream = stream or sys.stdout
@@ -154,14 +157,43 @@ class Telemetry:
             "late_executions", "blocked", "stopped", "uncertain", "uncalibrated",
         ):  # fmt: skip
             self.counts[key] += record.get(key, 0)
-        for car, outcome in record.get("outcomes", {}).items():
-            self.per_car.setdefault(int(car), Counter())[outcome] += 1
+        self._outcomes(record)
+        self._worst(record.get("offsets", {}), "offcentre_mm", "heading_deg")
         for name in SPANS[1:]:
             self._span(name, record.get(f"{name}_ns"))
         self._write({"kind": "step", **record})
         now_ns = record.get("t_ns", time.monotonic_ns())
         self._maybe_sample_memory(now_ns)
         self._maybe_live(now_ns)
+
+    def recentre(self, record: dict[str, Any]) -> None:
+        """A re-centring round (cars sent back to their cells' centres before a step): its
+        commands count like a step's, and each car re-centred."""
+        self.counts["recentre_rounds"] += 1
+        self.counts["recentred"] += len(record["cars"])
+        for key in ("on_time", "missed", "not_ready", "late_sends", "late_executions"):
+            self.counts[key] += record.get(key, 0)
+        self._outcomes(record)
+        for car in record["cars"]:
+            self.per_car.setdefault(int(car), Counter())["recentred"] += 1
+        self._worst(record["offsets"], "seen_offcentre_mm")
+        self._write({"kind": "recentre", **record})
+
+    def _outcomes(self, record: dict[str, Any]) -> None:
+        for car, outcome in record.get("outcomes", {}).items():
+            self.per_car.setdefault(int(car), Counter())[outcome] += 1
+
+    def _worst(self, offsets: dict[str, list[float]], distance: str, heading: str = "") -> None:
+        """Keep the largest of ``offsets`` (car -> [mm off centre, degrees off facing up])."""
+        for mm, degrees in offsets.values():
+            self.motion[distance] = max(self.motion[distance], mm)
+            if heading:
+                self.motion[heading] = max(self.motion[heading], abs(degrees))
+        if not heading:
+            return
+        self.motion["seen_offcentre_mm"] = max(
+            self.motion["seen_offcentre_mm"], self.motion[distance]
+        )
 
     def _maybe_sample_memory(self, now_ns: int) -> None:
         """Resident memory every ``MEMORY_PERIOD_S``: growth in a run of hours shows here."""
@@ -219,6 +251,7 @@ class Telemetry:
             "per_car": {str(c): dict(v) for c, v in sorted(self.per_car.items())},
             "episodes": self.episodes,
             "memory_mb": self.memory_summary(),
+            "motion": dict(self.motion),
         }
 
     def memory_summary(self) -> dict[str, float | None]:

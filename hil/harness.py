@@ -1,19 +1,20 @@
 """udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
-        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] --report out/hil
+        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] [--motion-error lab] --report out/hil
 
 starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback UDP, the
 virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
 episodes (``--episodes`` per cell of cars x obstacles, or random ones for ``--duration``
 seconds), applies the fault spec (:mod:`udan.hil.faults`) through the world's control port, then
 stops both and writes the report (:mod:`udan.hil.report`): the edge's spans and deadline counts, the
-cars' own counters, the world's collisions, and the score table through the full loop beside
-the pure simulation of the same policy on the same layouts.
+cars' own counters, the world's collisions, how far the cars strayed from their cells' centres
+and how often they were re-centred (``--motion-error``: :mod:`udan.hil.motion`), and the score
+table through the full loop beside the pure simulation of the same policy on the same layouts.
 
 Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
-parse, a missing model) is one line on stderr and exit code 2, and every process the harness
-started is stopped.
+parse, an unknown motion level, a missing model) is one line on stderr and exit code 2, and
+every process the harness started is stopped.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.export.runtime import OnnxPolicy
 from udan.fleetfile import write_fleet
 from udan.hil.faults import FaultPlan, FaultSpecError, parse_faults
+from udan.hil.motion import LEVELS, motion_level
 from udan.hil.world import Episode, episode_arena
 from udan.models import DEFAULT_POLICY, bundled_policy
 
@@ -76,6 +78,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--report", type=Path, default=Path("out/hil"), help="report folder")
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--cell-time-ms", type=float, default=200.0)
+    run.add_argument(
+        "--motion-error", default="0", metavar="LEVEL",
+        help=f"how far the cars' moves stray: {', '.join(LEVELS)} (docs/motion.md)",
+    )  # fmt: skip
+    run.add_argument("--settle-mm", type=float, default=30.0, help="udan-edge --settle-mm")
+    run.add_argument("--settle-deg", type=float, default=5.0, help="udan-edge --settle-deg")
     run.add_argument("--fps", type=float, default=40.0)
     run.add_argument("--video", action="store_true", help="record the camera (run.mp4)")
     run.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
@@ -170,7 +178,7 @@ class Loop:
             "--edge", f"127.0.0.1:{self.edge_port}", "--camera-name", self.camera,
             "--agents", f"{self.cars[0]}-{self.cars[1]}", "--obstacles", a.obstacles,
             "--seed", str(a.seed), "--cell-time-ms", str(a.cell_time_ms), "--fps", str(a.fps),
-            "--tilt", str(a.tilt), "--noise", str(a.noise),
+            "--tilt", str(a.tilt), "--noise", str(a.noise), "--motion-error", a.motion_error,
         ]  # fmt: skip
         if a.episodes is not None:
             cmd += ["--episodes-per-cell", str(a.episodes)]
@@ -196,6 +204,7 @@ class Loop:
             "--world", f"127.0.0.1:{control_port}", "--episode-steps", str(a.episode_steps),
             "--report", str(self.folder / "edge.json"),
             "--telemetry", str(self.folder / "telemetry.jsonl"), "--quiet",
+            "--settle-mm", str(a.settle_mm), "--settle-deg", str(a.settle_deg),
         ]  # fmt: skip
         if a.duration is not None:
             cmd += ["--duration", str(a.duration)]
@@ -318,6 +327,7 @@ def _check(args: argparse.Namespace) -> FaultPlan:
         raise HarnessError("give exactly one of --episodes (per cell) or --duration")
     if not args.model.is_file():
         raise HarnessError(f"model {args.model}: no such file")
+    motion_level(args.motion_error)
     faults = parse_faults(args.faults)
     try:
         args.report.mkdir(parents=True, exist_ok=True)

@@ -62,6 +62,8 @@ def fleet(tmp_path: Path) -> Path:
         ("unknown_transport", "transport"),
         ("report_folder", "does not exist"),
         ("bad_world", "--world must be HOST:PORT"),
+        ("bad_tolerance", "a tolerance must be above 0 and below half a cell"),
+        ("bad_body", "a car's body must be above 0 and smaller than a cell"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(
@@ -84,6 +86,8 @@ def test_bad_input_is_one_line_and_exit_2(
         "unknown_transport": {"--transport": "carrier-pigeon"},
         "report_folder": {"--report": str(tmp_path / "no" / "such" / "r.json")},
         "bad_world": {"--world": "nohost"},
+        "bad_tolerance": {"--settle-mm": "200"},
+        "bad_body": {"--body-mm": "400"},
     }[case]
     opts = {**base, **change}
     argv = [x for k, v in opts.items() if v is not None for x in (k, v)]
