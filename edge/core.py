@@ -17,6 +17,7 @@ last cell); or when the step period (``step_timeout_ns``) runs out (cars still i
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -45,6 +46,20 @@ class StepTiming:
     """Longest a step waits for moves to finish before deciding anyway."""
     unseen_grace_ns: int = 100_000_000
     """Longest a step waits for a car the camera missed (then it is judged on its last cell)."""
+
+
+def _late(command: CommandReport) -> bool:
+    """The command reached the car after its validity: refused as expired, or (an audit that
+    must never fire) accepted after its deadline in the car's own clock."""
+    if command.result == "expired":
+        return True
+    return (
+        command.acked
+        and command.result == "accepted"
+        and command.car_rx_us is not None
+        and command.car_deadline_us is not None
+        and command.car_rx_us > command.car_deadline_us
+    )
 
 
 def _outcome(command: CommandReport) -> str:
@@ -96,6 +111,7 @@ class ControlCore:
             if not sighting.uncertain:
                 if car is not None:
                     fleet.cell[car] = sighting.cell
+                    fleet.heading[car] = sighting.heading
             elif car is None or car not in fleet.cell:
                 continue
             else:
@@ -190,7 +206,10 @@ class ControlCore:
         report: DispatchReport,
         state_ns: int,
     ) -> dict[str, Any]:
-        """What became of a step's commands; returns the step's telemetry record."""
+        """What became of a step's commands; returns the step's telemetry record: spans and
+        counts, and per car (keyed by its id as a string) its cell, heading, command, outcome,
+        sends, with the policy's groups (car ids, leader first) and the episode's score so far.
+        The live view, the annotated video and the flight recorder read this same record."""
         decided_ns = report.decision_ns
         rehearsed, self._rehearsed = self._rehearsed, False
         self.fleet.command.update(commands)
@@ -204,6 +223,7 @@ class ControlCore:
         )
         acked = [r.acked_ns for r in cars if r.acked]
         every = len(commands)
+        returns = self.policy_step.returns
         return {
             "t_ns": decided_ns,
             "step": self.policy_step.t,
@@ -235,6 +255,12 @@ class ControlCore:
             "rehearsed": rehearsed,
             "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
             "commands": {str(c): a for c, a in commands.items()},
+            "sends": {str(c): r.attempts for c, r in report.cars.items()},
+            "late_cars": sorted(c for c, r in report.cars.items() if _late(r)),
+            "cells": {str(c): list(cell) for c, cell in state.cells.items()},
+            "headings_deg": {str(c): round(math.degrees(h), 1) for c, h in state.headings.items()},
+            "groups": self.policy_step.groups(),
+            "score": sum(returns.values()) / len(returns) if returns else None,
         }
 
     def wait_for_moves(self, now: int) -> None:

@@ -59,6 +59,8 @@ class FleetState:
     ``wait``) on the cell they were last placed in."""
     calibrated: bool = True
     """Whether the frame's camera model placed anything (if not, every car is uncertain)."""
+    headings: Mapping[int, float] = field(default_factory=dict)
+    """Car id -> its heading when last placed in a cell (radians, 0 = up, clockwise)."""
 
 
 class Fleet:
@@ -74,6 +76,8 @@ class Fleet:
         self.cell: dict[int, Cell] = {}
         """Where each car was last seen on the grid (kept across episodes: the first step of
         the next one is rehearsed from it)."""
+        self.heading: dict[int, float] = {}
+        """Each car's heading when it was last placed in a cell (radians)."""
         self.command: dict[int, int] = {}
         """The last command each car of the fleet was sent."""
         self._last_seen: dict[int, int] = {}
@@ -138,6 +142,7 @@ class Fleet:
         """The fleet as a step decided now sees it."""
         slots = dict(self.slot)
         cells = {c: self.cell[c] for c in slots}
+        headings = {c: self.heading[c] for c in slots if c in self.heading}
         return FleetState(
             slots,
             set(self.fresh),
@@ -149,6 +154,7 @@ class Fleet:
             t_capture_ns,
             uncertain,
             calibrated,
+            headings,
         )
 
     def reset(self) -> None:

@@ -160,8 +160,11 @@ class EdgeShell:
         for car in change.left:
             self.telemetry.event("fleet_leave", car=car)
         seen = sum(s.inside for s in scene.cars.values())
+        uncertain = sum(s.inside and s.uncertain for s in scene.cars.values())
         dropped = self.perception.dropped
-        self.telemetry.frame(scene.frame_index, scene.t_capture_ns, now, seen, dropped)
+        self.telemetry.frame(
+            scene.frame_index, scene.t_capture_ns, now, seen, dropped, uncertain, scene.vision_ns
+        )
 
     # ------------------------------------------------------------------ steps
     def _collect(self) -> None:
