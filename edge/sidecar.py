@@ -13,11 +13,12 @@ shape:
 - :class:`Outlet` is the loop's side of a child that only listens: :meth:`Outlet.offer` pickles
   a record and sends it if the socket has room, else drops and counts it. The socket's buffer is
   the bound; the loop never waits for the child.
-- :func:`records` is the child's side: every record until the edge closes its end.
-- The way back, for a child that answers (the web view's e-stop): the child replies through
-  :meth:`Channel.reply`, the loop reads the replies with :meth:`Outlet.listen` (``add_reader``
-  on the same socket). Replies are JSON, never pickles: a child that faces a network hands the
-  loop data, not objects to rebuild.
+- :func:`records` is the child's side: every record until the edge closes its end. A child
+  with something to say reads through an :class:`Inlet` and :meth:`Inlet.reply` s on the same
+  socket: at the end (what it wrote, what it missed), which :meth:`Outlet.close` collects
+  (:attr:`Outlet.replies`) once the child has exited; or while the loop runs (the web view's
+  stop button), which the loop reads with ``add_reader`` (:meth:`Outlet.listen`); or before
+  it runs (a child saying it is ready: :meth:`Outlet.wait_reply`).
 - :func:`exit_with_parent` is for processes that are not sidecars (the HIL world, an edge a
   harness starts): asked to by their parent, they get SIGTERM when it dies, however it died.
 """
@@ -27,7 +28,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
-import json
 import os
 import pickle
 import select
@@ -101,6 +101,9 @@ class Outlet:
         self.sent = 0
         self.dropped = 0
         """Records the socket had no room for (the child is behind) or that were too large."""
+        self.replies: list[Any] = []
+        """What the child replied (:meth:`Inlet.reply`) and no listener took, collected by
+        :meth:`close`."""
         self._sock, self.proc = spawn(module, args)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, buffer_bytes)
         self._sock.setblocking(False)
@@ -128,14 +131,14 @@ class Outlet:
         self.sent += 1
         return True
 
-    def reply(self, timeout_s: float) -> dict[str, Any] | None:
+    def wait_reply(self, timeout_s: float) -> Any | None:
         """The child's next reply, waiting up to ``timeout_s`` (before the loop runs: a child
         saying it is ready); None if none came or the child has gone."""
         if self._sock.fileno() < 0 or not select.select([self._sock], [], [], timeout_s)[0]:
             return None
-        return next(self._replies(), None)
+        return next(self._waiting(), None)
 
-    def _replies(self) -> Iterator[dict[str, Any] | None]:
+    def _waiting(self) -> Iterator[Any | None]:
         """The replies waiting in the socket now; a last None when the child has gone."""
         while True:
             try:
@@ -147,16 +150,16 @@ class Outlet:
             if not data:
                 yield None
                 return
-            yield json.loads(data)
+            yield pickle.loads(data)
 
-    def listen(self, on_reply: Callable[[dict[str, Any] | None], None]) -> None:
+    def listen(self, on_reply: Callable[[Any | None], None]) -> None:
         """Hand every reply of the child to ``on_reply`` in the running loop (``add_reader``),
         and None once when the child has gone."""
         loop = asyncio.get_running_loop()
         fd = self._sock.fileno()
 
         def readable() -> None:
-            for reply in self._replies():
+            for reply in self._waiting():
                 if reply is None:
                     loop.remove_reader(fd)
                     self._listening = None
@@ -176,45 +179,54 @@ class Outlet:
             with contextlib.suppress(OSError):
                 self._sock.shutdown(socket.SHUT_WR)
             reap(self.proc, timeout_s)
+            with contextlib.suppress(OSError):  # the child has exited: what it sent is all here
+                while data := self._sock.recv(MESSAGE_BYTES):
+                    self.replies.append(pickle.loads(data))
             self._sock.close()
         return exit_of(self.proc)
 
 
-class Channel:
-    """In the child: its end of the socket pair (``--fd N``), records in and replies out."""
+class Inlet:
+    """The child's end of an :class:`Outlet`: every record the edge offers (iterate), and
+    replies the edge reads (:meth:`Outlet.listen`, :meth:`Outlet.wait_reply`) or collects when
+    it closes the outlet."""
 
     def __init__(self, fd: int) -> None:
         self._sock = socket.socket(fileno=fd)
 
-    def records(self) -> Iterator[Any]:
-        """Every record the edge offers, in order, until the edge closes its end or goes away
-        (the socket is closed then)."""
+    def __iter__(self) -> Iterator[Any]:
+        """Every record, in order, until the edge closes its end or goes away."""
         buffer = bytearray(MESSAGE_BYTES)
-        try:
-            while True:
-                try:
-                    size = self._sock.recv_into(buffer)
-                except OSError:
-                    return
-                if not size:
-                    return
-                yield pickle.loads(memoryview(buffer)[:size])
-        finally:
-            self._sock.close()
+        while True:
+            try:
+                size = self._sock.recv_into(buffer)
+            except OSError:
+                return
+            if not size:
+                return
+            yield pickle.loads(memoryview(buffer)[:size])
 
-    def reply(self, message: Mapping[str, Any]) -> bool:
-        """Send ``message`` (JSON) to the edge; False if the edge has gone."""
+    def reply(self, record: Any) -> bool:
+        """Send ``record`` back (small: it must fit one message); False if the edge has gone.
+        Safe from another thread than the one iterating."""
         try:
-            self._sock.send(json.dumps(message).encode())
+            self._sock.send(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
         except OSError:
             return False
         return True
+
+    def close(self) -> None:
+        self._sock.close()
 
 
 def records(fd: int) -> Iterator[Any]:
     """In the child: every record the edge offers, in order, until the edge closes its end or
     goes away."""
-    return Channel(fd).records()
+    inlet = Inlet(fd)
+    try:
+        yield from inlet
+    finally:
+        inlet.close()
 
 
 EXIT_WITH_PARENT = "UDAN_EXIT_WITH_PARENT"

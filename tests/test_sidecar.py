@@ -135,14 +135,15 @@ def test_the_child_never_outlives_a_killed_parent(echo_module, tmp_path):
 ANSWER = textwrap.dedent(
     """
     import sys
-    from udan.edge.sidecar import Channel, ignore_interrupts
+    from udan.edge.sidecar import Inlet, ignore_interrupts
     ignore_interrupts()
-    channel = Channel(int(sys.argv[2]))
-    channel.reply({"ready": True})
-    for record in channel.records():
+    inlet = Inlet(int(sys.argv[2]))
+    inlet.reply({"ready": True})
+    for record in inlet:
         if record == "quit":
             break
-        channel.reply({"got": record})
+        inlet.reply({"got": record})
+    inlet.reply({"bye": True})
     """
 )
 
@@ -156,7 +157,7 @@ def answer_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
 
 def test_replies_come_back_through_the_loop_and_the_end_is_told_once(answer_module):
     outlet = Outlet(answer_module)
-    assert outlet.reply(20.0) == {"ready": True}
+    assert outlet.wait_reply(20.0) == {"ready": True}
     replies: list = []
 
     async def main() -> None:
@@ -174,14 +175,21 @@ def test_replies_come_back_through_the_loop_and_the_end_is_told_once(answer_modu
         await asyncio.wait_for(ended.wait(), 20)
 
     asyncio.run(main())
-    assert replies == [{"got": i} for i in range(5)] + [None]
+    assert replies == [*({"got": i} for i in range(5)), {"bye": True}, None]
     assert outlet.close() == "exit code 0"
+
+
+def test_replies_nobody_listened_to_are_collected_at_close(answer_module):
+    outlet = Outlet(answer_module)
+    outlet.offer(7)
+    assert outlet.close() == "exit code 0"  # EOF ends its loop: it says goodbye and exits
+    assert outlet.replies == [{"ready": True}, {"got": 7}, {"bye": True}]
 
 
 def test_no_reply_in_time_is_none_not_a_wait_forever(echo_module, tmp_path):
     outlet = Outlet(echo_module, [str(tmp_path / "out.jsonl")])
     start = time.monotonic()
-    assert outlet.reply(0.2) is None
+    assert outlet.wait_reply(0.2) is None
     assert time.monotonic() - start < 2.0
     outlet.close()
 
