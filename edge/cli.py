@@ -33,6 +33,7 @@ from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from udan.edge.fleet import Fleet
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
+from udan.edge.live import MIN_TOKEN_CHARS, LiveView, WebError, web_address
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.perception import (
     PerceptionError,
@@ -41,7 +42,7 @@ from udan.edge.perception import (
     VisionSettings,
 )
 from udan.edge.shell import EdgeShell, LoopConfig
-from udan.edge.telemetry import Telemetry
+from udan.edge.telemetry import DEADLINE_NS, Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
 from udan.envs.errors import OneLineParser
 from udan.export.metadata import MetadataError, obs_spec
@@ -50,6 +51,7 @@ from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-edge"
 SIM_MARKER_BASE = 10
+WEB_TOKEN_ENV = "UDAN_WEB_TOKEN"
 
 
 class UsageError(ValueError):
@@ -122,6 +124,16 @@ def _parser() -> argparse.ArgumentParser:
     out.add_argument("--report", type=Path, help="write the totals as JSON here at exit")
     out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
     out.add_argument("--quiet", action="store_true", help="no live summary line")
+    out.add_argument(
+        "--web", metavar="HOST:PORT", help="serve the live page and Prometheus /metrics here "
+        "(e.g. 127.0.0.1:8080; port 0 picks a free one); off by default",
+    )  # fmt: skip
+    out.add_argument(
+        "--web-token", default=os.environ.get(WEB_TOKEN_ENV), metavar="TOKEN",
+        help=f"enables the page's stop-all button for whoever gives this token (at least "
+        f"{MIN_TOKEN_CHARS} characters; needed for a non-loopback --web; default: "
+        f"${WEB_TOKEN_ENV}, which keeps it off the process list)",
+    )  # fmt: skip
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
@@ -176,24 +188,38 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.calibration,
         {c.marker: c.marker_height_m for c in cars},
     )
-    # the perception process starts first and opens the camera while the model loads
+    # the perception (and web) processes start first and open the camera (bind the page's
+    # address) while the model loads
     perception = ProcessPerception(args.camera, settings) if args.perception == "process" else None
+    live = None
     try:
+        if args.web is not None:
+            config = {
+                "rows": geometry.rows,
+                "cols": geometry.cols,
+                "cars": [c.car_id for c in cars],
+                "deadline_ms": DEADLINE_NS / 1e6,
+            }
+            live = LiveView(*web_address(args.web, args.web_token), args.web_token, config)
         _, policy_step = load_policy(args.model, geometry)
         transport = open_transport(args.transport, cars, **_transport_options(args))
         if perception is None:
             perception = ThreadPerception(FrameGrabber(open_camera(args.camera)), settings.build())
         perception.wait_ready()
+        if live is not None:
+            print(f"{PROG}: live view at {live.wait_ready()}", flush=True)
     except BaseException:
         if perception is not None:
             perception.close()
+        if live is not None:
+            live.close()
         raise
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
     core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
-    shell = EdgeShell(perception, link, core, telemetry, config)
+    shell = EdgeShell(perception, link, core, telemetry, config, live)
     play = None
     if world is not None:
         play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
@@ -202,12 +228,16 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         await link.start()
     except BaseException:
         perception.close()
+        if live is not None:
+            live.close()
         raise
     try:
         return await shell.run(play)
     finally:
         await link.close()
         telemetry.close()
+        if live is not None:
+            live.close()
 
 
 def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
@@ -304,6 +334,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
         _writable(args.video, "--video")
+        if args.web is not None:
+            web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:
             _realtime()
         if args.sim:
@@ -317,7 +349,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = _event_loop_runner()(runner)
     except (
         UsageError, CameraError, VisionError, FleetFileError, TransportError, TaskError,
-        WorldError,
+        WorldError, WebError,
     ) as err:  # fmt: skip
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2

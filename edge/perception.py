@@ -132,6 +132,8 @@ class Perception(ABC):
 
     sweep_frames: int
     """Frames one sweep of the whole image takes (:attr:`udan.edge.vision.Vision.sweep_frames`)."""
+    thumbnail: bytes | None = None
+    """The newest camera thumbnail with the detections drawn (JPEG), when asked for."""
 
     @property
     @abstractmethod

@@ -26,6 +26,7 @@ from typing import Any
 from udan.edge.core import ControlCore, StepTiming
 from udan.edge.fleet import FleetState
 from udan.edge.link import CarLink
+from udan.edge.live import LiveView
 from udan.edge.pauses import collect_between_steps
 from udan.edge.perception import FrameTaken, Perception
 from udan.edge.telemetry import Telemetry
@@ -66,13 +67,16 @@ class EdgeShell:
         core: ControlCore,
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
+        live: LiveView | None = None,
     ) -> None:
         self.perception = perception
         self.link = link
         self.core = core
         self.telemetry = telemetry
         self.config = config
+        self.live = live
         self.stop = asyncio.Event()
+        self._captured_ns: int | None = None  # capture time of the newest scene folded in
         self._collections = 0
         self._longest_collection_ns = 0
         self._collected_ns = time.monotonic_ns()
@@ -93,6 +97,8 @@ class EdgeShell:
         gc.disable()  # collections run between steps (_collect), never inside one
         try:
             self.perception.start()
+            if self.live is not None:
+                self.live.start(self._stop_from_page)
             if play is None:
                 await self.drive(max_steps=None)
             else:
@@ -106,6 +112,7 @@ class EdgeShell:
                 loop.remove_signal_handler(sig)
             await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
             self.perception.close()
+            self._publish(final=True)  # the page shows how the run ended
         report = self.telemetry.report()
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
@@ -124,6 +131,7 @@ class EdgeShell:
         step is analysed, the core rehearses the step."""
         while not self.stop.is_set():
             self.perception.skip_before(self.core.not_before_ns)
+            self._publish()
             event = await self._wait_event()
             if event is None:
                 return None
@@ -154,6 +162,7 @@ class EdgeShell:
 
     def _fold(self, scene: Scene, now: int) -> None:
         """A scene into the core; telemetry of the frame and of the fleet's changes."""
+        self._captured_ns = scene.t_capture_ns
         change = self.core.see(scene, self.link.ready_cars(), now)
         for car in change.joined:
             self.telemetry.event("fleet_join", car=car)
@@ -205,4 +214,39 @@ class EdgeShell:
         """One decision and its dispatch, with the step's telemetry."""
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
         report = await self.link.dispatch(commands, decided_ns)
-        self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
+        record = self.core.dispatched(state, decision, commands, report, state_ns)
+        self.telemetry.step(record)
+        if self.live is not None:
+            self.live.step(record)
+
+    # ------------------------------------------------------------------ the live view
+    def _publish(self, *, final: bool = False) -> None:
+        """A snapshot for the live view when one is due; called where the loop is about to
+        wait for the camera anyway (``final``: at the end of the run, due or not)."""
+        live, now = self.live, time.monotonic_ns()
+        if live is None or not (live.due(now) or final):
+            return
+        core, counts, camera = self.core, self.telemetry, self.perception
+        live.publish(
+            {
+                "t_ns": now,
+                "step": live.last_step,
+                "static": {kind: sorted(cells) for kind, cells in (core.static or {}).items()},
+                "fleet": sorted(core.fleet.slot),
+                "joined": sorted(self.link.ready_cars()),
+                "totals": counts.totals(),
+                "link": self.link.counters(),
+                "camera": {"captured": camera.captured, "dropped": camera.dropped},
+                "frame_age_ns": None if self._captured_ns is None else now - self._captured_ns,
+                "stopped": core.stopped,
+            },
+            camera.thumbnail,
+        )
+
+    def _stop_from_page(self) -> int:
+        """The page's stop-all button: no further step, and an emergency stop to every car
+        through the link (authenticated per car, like any command), counted."""
+        self.core.emergency_stop()
+        sent = self.link.estop_all()
+        self.telemetry.event("remote_estop", cars=sent)
+        return sent
