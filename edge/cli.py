@@ -34,6 +34,7 @@ from udan.edge.fleet import Fleet
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
 from udan.edge.live import MIN_TOKEN_CHARS, LiveView, WebError, web_address
+from udan.edge.overlay import OverlaySettings
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.perception import (
     PerceptionError,
@@ -125,6 +126,10 @@ def _parser() -> argparse.ArgumentParser:
     out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
     out.add_argument("--quiet", action="store_true", help="no live summary line")
     out.add_argument(
+        "--video", type=Path, help="record the camera to this MP4 with what the controller "
+        "thinks drawn on it: cars, cells, groups, leaders, commands, score, latency",
+    )  # fmt: skip
+    out.add_argument(
         "--web", metavar="HOST:PORT", help="serve the live page and Prometheus /metrics here "
         "(e.g. 127.0.0.1:8080; port 0 picks a free one); off by default",
     )  # fmt: skip
@@ -137,7 +142,6 @@ def _parser() -> argparse.ArgumentParser:
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
-    sim.add_argument("--video", type=Path, help="record the virtual camera to this MP4")
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
     sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
@@ -188,9 +192,16 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.calibration,
         {c.marker: c.marker_height_m for c in cars},
     )
+    overlay = OverlaySettings(
+        None if args.video is None else str(args.video),
+        thumbnails=args.web is not None,
+        markers={c.car_id: c.marker for c in cars},
+    )
     # the perception (and web) processes start first and open the camera (bind the page's
     # address) while the model loads
-    perception = ProcessPerception(args.camera, settings) if args.perception == "process" else None
+    perception = None
+    if args.perception == "process":
+        perception = ProcessPerception(args.camera, settings, overlay)
     live = None
     try:
         if args.web is not None:
@@ -204,7 +215,8 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         _, policy_step = load_policy(args.model, geometry)
         transport = open_transport(args.transport, cars, **_transport_options(args))
         if perception is None:
-            perception = ThreadPerception(FrameGrabber(open_camera(args.camera)), settings.build())
+            grabber = FrameGrabber(open_camera(args.camera))
+            perception = ThreadPerception(grabber, settings.build(), overlay)
         perception.wait_ready()
         if live is not None:
             print(f"{PROG}: live view at {live.wait_ready()}", flush=True)
@@ -248,8 +260,6 @@ def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) 
         "--agents", f"1-{args.cars}", "--obstacles", args.obstacles, "--seed", str(args.seed),
         "--cell-time-ms", str(args.cell_time_ms),
     ]  # fmt: skip
-    if args.video:
-        cmd += ["--video", str(args.video)]
     INTERRUPTS.hold()  # a signal inside Popen would leave the world running and unnamed
     proc = None
     try:

@@ -27,6 +27,7 @@ from udan.edge.core import ControlCore, StepTiming
 from udan.edge.fleet import FleetState
 from udan.edge.link import CarLink
 from udan.edge.live import LiveView
+from udan.edge.overlay import overlay_of
 from udan.edge.pauses import collect_between_steps
 from udan.edge.perception import FrameTaken, Perception
 from udan.edge.telemetry import Telemetry
@@ -118,6 +119,8 @@ class EdgeShell:
         report["link"] = self.link.counters()
         perception = self.perception
         report["camera"] = {"captured": perception.captured, "dropped": perception.dropped}
+        if perception.video is not None:
+            report["camera"]["video"] = perception.video
         report["gc"] = {
             "collections": self._collections,
             "longest_ms": round(self._longest_collection_ns / 1e6, 3),
@@ -218,6 +221,11 @@ class EdgeShell:
         self.telemetry.step(record)
         if self.live is not None:
             self.live.step(record)
+        if self.perception.overlay.wanted:  # drawn onto the frames, where they are
+            counts = self.telemetry.counts
+            sent = counts["on_time"] + counts["missed"]
+            share = counts["on_time"] / sent if sent else None
+            self.perception.annotate(overlay_of(record, counts["steps"], share))
 
     # ------------------------------------------------------------------ the live view
     def _publish(self, *, final: bool = False) -> None:

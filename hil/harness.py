@@ -75,7 +75,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--cell-time-ms", type=float, default=200.0)
     run.add_argument("--fps", type=float, default=40.0)
-    run.add_argument("--video", action="store_true", help="record the camera (run.mp4)")
+    run.add_argument(
+        "--video", action="store_true", help="record the camera, annotated by the edge (run.mp4)"
+    )
     run.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
@@ -172,8 +174,6 @@ class Loop:
         ]  # fmt: skip
         if a.episodes is not None:
             cmd += ["--episodes-per-cell", str(a.episodes)]
-        if a.video:
-            cmd += ["--video", str(self.folder / "run.mp4")]
         proc = self._spawn("world", cmd)
         line = proc.stdout.readline() if proc.stdout else ""
         try:
@@ -199,6 +199,8 @@ class Loop:
             cmd += ["--duration", str(a.duration)]
         if a.edge_realtime:
             cmd.append("--realtime")
+        if a.video:
+            cmd += ["--video", str(self.folder / "run.mp4")]
         cmd += ["--perception", a.edge_perception]
         return self._spawn("edge", cmd)
 

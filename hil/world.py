@@ -312,9 +312,7 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     try:
         model = CameraModel(**config["model"])
         renderer = Renderer(config["geometry"], model)
-        camera = VirtualCamera(
-            config["name"], model.width, model.height, video=config["video"], fps=config["fps"]
-        )
+        camera = VirtualCamera(config["name"], model.width, model.height, fps=config["fps"])
     except (OSError, ValueError) as err:
         conn.send(("error", str(err)))
         return
@@ -478,7 +476,6 @@ class WorldServer:
                 "model": model,
                 "geometry": self.geometry,
                 "name": args.camera_name,
-                "video": None if args.video is None else str(args.video),
                 "fps": args.fps,
                 "markers": self.world.markers,
                 "cell_time_s": args.cell_time_ms / 1000,
@@ -520,7 +517,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cell-time-ms", type=float, default=200.0)
     p.add_argument("--fps", type=float, default=40.0)
-    p.add_argument("--video", type=Path, help="record the camera to this MP4")
     p.add_argument("--control-port", type=int, default=0)
     p.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")

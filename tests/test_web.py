@@ -165,6 +165,8 @@ def test_the_page_shows_every_car_of_the_fleet_in_the_cell_the_step_decided_on(s
     page = browser.new_page()
     page.goto(sim.url)
     page.wait_for_function("document.querySelectorAll('#arena g.car').length > 0")
+    # the camera thumbnail, with the detections drawn, from the perception process
+    page.wait_for_function("document.getElementById('camera').naturalWidth === 480")
     page.wait_for_timeout(3000)  # a few seconds of updates
     shown = page.evaluate(SHOWN)  # one render's state: the page redraws at every update
     status = page.inner_text("#status")
