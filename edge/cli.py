@@ -43,6 +43,7 @@ from udan.edge.perception import (
     VisionSettings,
 )
 from udan.edge.shell import EdgeShell, LoopConfig
+from udan.edge.sidecar import exit_with_parent, parent_watch_env
 from udan.edge.telemetry import DEADLINE_NS, Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
 from udan.envs.errors import OneLineParser
@@ -263,7 +264,9 @@ def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) 
     INTERRUPTS.hold()  # a signal inside Popen would leave the world running and unnamed
     proc = None
     try:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, text=True, start_new_session=True, env=parent_watch_env()
+        )
         INTERRUPTS.release()
         line = proc.stdout.readline() if proc.stdout else ""
         ready = json.loads(line)
@@ -338,6 +341,7 @@ def _event_loop_runner() -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
+    exit_with_parent()  # if whoever started us asked (udan-hil run): its end is our SIGTERM
     args = _parser().parse_args(argv)
     INTERRUPTS.install()
     try:

@@ -44,6 +44,7 @@ import numpy as np
 
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage
+from udan.edge.sidecar import exit_with_parent
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
@@ -527,6 +528,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: serve until SIGTERM, then print the final counters as one JSON line."""
+    exit_with_parent()  # if whoever started us asked: its end is our SIGTERM
     args = _parser().parse_args(argv)
     try:
         server = WorldServer(args)
