@@ -10,7 +10,8 @@ scaling, drawing and encoding happen in a thread of their own with a short queue
 it cannot keep up with is skipped and counted, never waited for.
 
 Drawn: the grid and the static cells, each car (its id, its marker's heading, the cell the last
-step placed it in; a doubtful sighting in orange with a question mark), the groups (a line from
+step placed it in; a car the step held for a doubtful sighting in orange with a question mark:
+a car in a move is between cells, doubtful by nature, and not marked), the groups (a line from
 each leader to its members, the leader ringed), each car's last command as an arrow coloured by
 what became of it (on time, missed, not ready), and in a corner the step, the score and the
 latencies.
@@ -42,6 +43,9 @@ THUMBNAIL_WIDTH = 480
 THUMBNAIL_PERIOD_NS = 200_000_000
 """At most five thumbnails a second (the page updates at 10 Hz)."""
 THUMBNAIL_QUALITY = 70
+STEP_SHOWN_NS = 1_500_000_000
+"""A step's cells, commands and groups are drawn this long after its decision (longer than the
+step period): between episodes, or with the fleet stopped, the frames show no stale step."""
 MAX_REPEAT_S = 5.0
 """Longest gap the video fills by repeating a frame (a camera stall); longer ones are cut."""
 QUEUE = 4
@@ -86,6 +90,7 @@ def overlay_of(record: Mapping[str, Any], steps: int, on_time_share: float | Non
     """What of a step's telemetry record is drawn, with the run's step count and on-time share
     so far (the record itself is per step)."""
     return {
+        "t_ns": record.get("t_ns"),
         "steps": steps,
         "cells": record.get("cells", {}),
         "commands": record.get("commands", {}),
@@ -104,7 +109,8 @@ class _Marks:
     """One frame's drawing in full-size image pixels, projected in the vision's thread."""
 
     cars: dict[int, tuple[np.ndarray, np.ndarray, bool]]
-    """Car id -> (marker centre, a point ahead of it along its heading, uncertain)."""
+    """Car id -> (marker centre, a point ahead of it along its heading, held by the step as
+    uncertain)."""
     cells: dict[int, np.ndarray]
     """Car id -> the outline of the cell the last step placed it in."""
     targets: dict[int, np.ndarray]
@@ -154,8 +160,11 @@ class Annotator:
         if not (video or thumbnail):
             return
         repeats = min(tick - self._next_tick + 1, int(MAX_REPEAT_S * VIDEO_FPS)) if video else 0
+        overlay = self._overlay
+        if t - (overlay.get("t_ns") or t) > STEP_SHOWN_NS:  # the corner's figures only
+            overlay = {**overlay, "cells": {}, "commands": {}, "groups": [], "uncertain": []}
         try:
-            item = (frame.image, self._marks(scene), self._overlay, repeats, thumbnail)
+            item = (frame.image, self._marks(scene, overlay), overlay, repeats, thumbnail)
             self._queue.put_nowait(item)
         except queue.Full:  # the next frame due fills the video's gap
             self.skipped += 1
@@ -165,15 +174,15 @@ class Annotator:
         if thumbnail:
             self._next_thumbnail_ns = t + THUMBNAIL_PERIOD_NS
 
-    def _marks(self, scene: Scene) -> _Marks:
+    def _marks(self, scene: Scene, overlay: Mapping[str, Any]) -> _Marks:
         fit, geometry = self.vision.fit, self.vision.geometry
         if not fit.calibrated:
             return _Marks({}, {}, {}, [], [])
         heights = self.vision.marker_heights
         cars, cells, targets = {}, {}, {}
-        placed = self._overlay.get("cells", {})
-        commands = self._overlay.get("commands", {})
-        doubted = set(self._overlay.get("uncertain", ()))
+        placed = overlay.get("cells", {})
+        commands = overlay.get("commands", {})
+        doubted = set(overlay.get("uncertain", ()))
         for marker, sighting in scene.cars.items():
             car = self.car_of.get(marker)
             if car is None:
@@ -182,7 +191,7 @@ class Annotator:
             x, y = sighting.xy
             ahead = (x + 0.1 * math.sin(sighting.heading), y - 0.1 * math.cos(sighting.heading))
             centre, front = fit.to_image(np.array([[x, y], ahead]), height)
-            cars[car] = (centre, front, sighting.uncertain or car in doubted)
+            cars[car] = (centre, front, car in doubted)
             cell = placed.get(str(car))
             if cell is None:
                 continue

@@ -43,7 +43,8 @@ def _frames(n: int) -> list[Frame]:
 
 
 STEP = {
-    "t_ns": 1, "cells": {"1": [2, 3], "2": [6, 5]}, "commands": {"1": 3, "2": 4},
+    "t_ns": 10**9 + 39 * FRAME_NS,
+    "cells": {"1": [2, 3], "2": [6, 5]}, "commands": {"1": 3, "2": 4},
     "outcomes": {"1": "on_time", "2": "missed"}, "groups": [[1, 2]], "uncertain_cars": [],
     "score": 12.5, "state_to_commands_ns": 600_000, "frame_to_received_ns": 7_000_000,
 }  # fmt: skip
@@ -87,6 +88,29 @@ def test_the_video_follows_the_capture_times_and_shows_the_step(tmp_path: Path) 
     assert ok and _near(early, YELLOW, (x0 - 3, y0 - 3, x1 + 3, y1 + 3)) < 10
     # the corner: a black box with the step's figures
     assert early[5:60, 5:300].mean() < last[100:200, 300:600].mean()
+
+
+def test_a_step_is_drawn_while_it_is_current(tmp_path: Path) -> None:
+    """Between episodes (or once stopped) no step is decided: after the step period and a half
+    its cells, commands and groups go; the corner's figures stay."""
+    video = tmp_path / "run.mp4"
+    vision = Vision(GEOMETRY, car_markers=CELLS)
+    annotator = Annotator(OverlaySettings(str(video), False, MARKERS), vision)
+    frames = _frames(40)
+    for frame in frames:
+        vision.process(frame)
+    annotator.step(overlay_of(STEP, steps=7, on_time_share=0.75))
+    later = STEP["t_ns"] + 2 * 10**9
+    late = [Frame(f.image, later + i * FRAME_NS, i) for i, f in enumerate(frames)]
+    for frame in late:
+        annotator.frame(frame, vision.process(frame))
+        time.sleep(FRAME_NS / 1e9)
+    annotator.close()
+    capture = cv2.VideoCapture(str(video))
+    ok, image = capture.read()
+    corners = vision.fit.to_image(np.array([[3, 2], [4, 3]]) * GEOMETRY.cell_m) * VIDEO_SCALE
+    (x0, y0), (x1, y1) = corners.astype(int)
+    assert ok and _near(image, YELLOW, (x0 - 3, y0 - 3, x1 + 3, y1 + 3)) < 10
 
 
 def test_thumbnails_are_small_jpegs_a_few_times_a_second() -> None:

@@ -107,6 +107,19 @@ def test_a_child_that_has_gone_is_counted_not_raised(echo_module, tmp_path):
     assert outlet.close() == "killed by SIGKILL"
 
 
+def _kill_and_expect_the_end_of(parent: subprocess.Popen, child: int) -> None:
+    """SIGKILL ``parent``; ``child`` must end within 10 s."""
+    parent.kill()
+    parent.wait()
+    end = time.monotonic() + 10
+    while time.monotonic() < end:
+        if not _running(child):
+            return
+        time.sleep(0.05)
+    os.kill(child, signal.SIGKILL)
+    raise AssertionError("the child outlived its killed parent")
+
+
 def test_the_child_never_outlives_a_killed_parent(echo_module, tmp_path):
     """The edge SIGKILLed: its end of the socket closes with it, and the child ends by itself."""
     parent = textwrap.dedent(
@@ -120,15 +133,7 @@ def test_the_child_never_outlives_a_killed_parent(echo_module, tmp_path):
     )
     proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
     child = int(proc.stdout.readline())
-    proc.kill()
-    proc.wait()
-    end = time.monotonic() + 10
-    while time.monotonic() < end:
-        if not _running(child):
-            return
-        time.sleep(0.05)
-    os.kill(child, signal.SIGKILL)
-    raise AssertionError("the child outlived its killed parent")
+    _kill_and_expect_the_end_of(proc, child)
 
 
 # A child that answers: replies {"got": i} to every record, and {"ready": true} first.
@@ -222,15 +227,7 @@ def test_a_child_asked_to_watch_its_parent_ends_when_the_parent_is_killed(tmp_pa
     child = int(proc.stdout.readline())
     time.sleep(1.0)  # the child has started watching (a parent gone earlier is caught too)
     assert _running(child)
-    proc.kill()
-    proc.wait()
-    end = time.monotonic() + 10
-    while time.monotonic() < end:
-        if not _running(child):
-            return
-        time.sleep(0.05)
-    os.kill(child, signal.SIGKILL)
-    raise AssertionError("the child outlived its killed parent")
+    _kill_and_expect_the_end_of(proc, child)
 
 
 def test_without_the_request_a_child_is_not_bound_to_its_parent(tmp_path, monkeypatch):
