@@ -19,6 +19,7 @@ latencies.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -49,6 +50,9 @@ step period): between episodes, or with the fleet stopped, the frames show no st
 MAX_REPEAT_S = 5.0
 """Longest gap the video fills by repeating a frame (a camera stall); longer ones are cut."""
 QUEUE = 4
+DRAWING_NICENESS = 10
+"""How much nicer than the thread that starts it the drawing thread runs (Linux niceness is per
+thread): the video has seconds, the vision a frame, a command 10 ms."""
 GRID_SAMPLES = 12  # points along each grid line: a distorting lens bends them
 COMMAND_DELTAS = {0: (-1, 0), 1: (1, 0), 2: (0, -1), 3: (0, 1)}  # up, down, left, right
 OUTCOME_BGR = {"on_time": (60, 170, 60), "missed": (40, 40, 220), "not_ready": (150, 150, 150)}
@@ -228,6 +232,8 @@ class Annotator:
 
     # -- in the drawing thread -------------------------------------------------------------------
     def _draw_loop(self) -> None:
+        with contextlib.suppress(OSError):
+            os.nice(DRAWING_NICENESS)  # this thread only
         while (item := self._queue.get()) is not None:
             image, marks, overlay, repeats, thumbnail = item
             h, w = image.shape[:2]

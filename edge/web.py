@@ -58,6 +58,8 @@ SEND_TIMEOUT_S = 5.0
 CLIENT_SNDBUF = 64 * 1024
 """Kernel send buffer per client: with the writer's limit, what a stalled client can hold up."""
 WRITER_LIMIT = 64 * 1024
+CLOSE_S = 1.0
+"""At the end, how long the clients get to take the close (then they are cut off)."""
 ESTOP_CONFIRM_S = 2.0
 """Longest a stop request waits for the edge to say how many cars it stopped."""
 COMMAND_NAMES = ("up", "down", "left", "right", "wait", "stop")
@@ -423,7 +425,9 @@ async def serve(inlet: Inlet, host: str, port: int) -> int:
         reason = os.strerror(err.errno) if err.errno else str(err)
         inlet.reply({"kind": "error", "message": f"--web {host}:{port}: {reason}"})
         return 2
-    runner = web.AppRunner(build_app(view), access_log=None, handle_signals=False)
+    runner = web.AppRunner(
+        build_app(view), access_log=None, handle_signals=False, shutdown_timeout=CLOSE_S
+    )
     await runner.setup()
     await web.SockSite(runner, listening).start()
     bound = listening.getsockname()  # port 0: the one the kernel chose
@@ -440,11 +444,17 @@ async def serve(inlet: Inlet, host: str, port: int) -> int:
     try:
         await ended.wait()
     finally:
-        for client in list(view.clients):
-            with contextlib.suppress(Exception):
-                await client.ws.close()
+        await asyncio.gather(*(_close(client) for client in list(view.clients)))
         await runner.cleanup()
     return 0
+
+
+async def _close(client: Client) -> None:
+    """Say goodbye to a client; cut off one that does not take it within ``CLOSE_S``."""
+    try:
+        await asyncio.wait_for(client.ws.close(), CLOSE_S)
+    except (TimeoutError, ConnectionError):
+        client.transport.abort()
 
 
 def _host(address: str) -> str:

@@ -135,7 +135,7 @@ def test_settings_travel_as_json() -> None:
     assert OverlaySettings.from_json(settings.to_json()) == settings
 
 
-@pytest.mark.parametrize("perception", ["process", "thread"])
+@pytest.mark.parametrize("perception", ["process", pytest.param("thread", marks=pytest.mark.slow)])
 def test_udan_edge_sim_video_is_annotated(tmp_path: Path, perception: str) -> None:
     video, report = tmp_path / "run.mp4", tmp_path / "report.json"
     done = subprocess.run(

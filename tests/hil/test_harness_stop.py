@@ -90,7 +90,9 @@ def _start(folder: Path) -> tuple[subprocess.Popen, dict[int, int]]:
     return proc, family
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)]
+)
 def test_a_signal_stops_the_run_within_two_seconds_with_a_partial_report(
     tmp_path: Path, sig: signal.Signals
 ) -> None:
@@ -120,6 +122,7 @@ def test_a_sigkilled_harness_leaves_no_process_of_its_run(tmp_path: Path) -> Non
     _wait_gone(family, 15.0)
 
 
+@pytest.mark.slow
 def test_a_sigkilled_sim_edge_leaves_no_world(tmp_path: Path) -> None:
     proc = subprocess.Popen(
         [str(BIN / "udan-edge"), "--sim", "--cars", "2", "--duration", "60", "--quiet"],
