@@ -51,8 +51,7 @@ MAX_REPEAT_S = 5.0
 """Longest gap the video fills by repeating a frame (a camera stall); longer ones are cut."""
 QUEUE = 4
 DRAWING_NICENESS = 10
-"""How much nicer than the thread that starts it the drawing thread runs (Linux niceness is per
-thread): the video has seconds, the vision a frame, a command 10 ms."""
+"""Where idle scheduling is missing: how much nicer than its creator the drawing thread runs."""
 GRID_SAMPLES = 12  # points along each grid line: a distorting lens bends them
 COMMAND_DELTAS = {0: (-1, 0), 1: (1, 0), 2: (0, -1), 3: (0, 1)}  # up, down, left, right
 OUTCOME_BGR = {"on_time": (60, 170, 60), "missed": (40, 40, 220), "not_ready": (150, 150, 150)}
@@ -232,8 +231,7 @@ class Annotator:
 
     # -- in the drawing thread -------------------------------------------------------------------
     def _draw_loop(self) -> None:
-        with contextlib.suppress(OSError):
-            os.nice(DRAWING_NICENESS)  # this thread only
+        _idle_priority()
         while (item := self._queue.get()) is not None:
             image, marks, overlay, repeats, thumbnail = item
             h, w = image.shape[:2]
@@ -268,6 +266,19 @@ class Annotator:
         if self._writer is not None:
             self._writer.release()
         return {"video_frames": self.written, "skipped": self.skipped}
+
+
+def _idle_priority() -> None:
+    """The calling thread runs only when nothing else of its process wants the CPU (Linux
+    ``SCHED_IDLE``, per thread, no privilege needed): the video has seconds, the vision a
+    frame, a command 10 ms. Nicety alone was not enough: this process shares the edge's
+    session, and so the loop's share of the CPU (Linux autogroups), and drawing and encoding
+    take a tenth of a core; elsewhere, the thread is made nicer."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        with contextlib.suppress(OSError):
+            os.nice(DRAWING_NICENESS)
 
 
 def _pt(p: np.ndarray, scale: float) -> tuple[int, int]:
