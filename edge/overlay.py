@@ -51,7 +51,12 @@ MAX_REPEAT_S = 5.0
 """Longest gap the video fills by repeating a frame (a camera stall); longer ones are cut."""
 QUEUE = 4
 DRAWING_NICENESS = 10
-"""Where idle scheduling is missing: how much nicer than its creator the drawing thread runs."""
+"""The drawing thread's niceness (the HIL camera process's, which recorded the raw video
+before): below the vision (5) and the loop (0), since the video has seconds, the vision a frame
+and a command 10 ms. The perception process shares the edge's session, and with it the loop's
+share of the CPU (Linux autogroups): at 10 the drawing weighs a tenth of the loop there. Lower
+(19, or ``SCHED_IDLE``) starved it for seconds on a saturated machine (a video of a few frames),
+and a video left unfinished when its process is stopped is unreadable."""
 GRID_SAMPLES = 12  # points along each grid line: a distorting lens bends them
 COMMAND_DELTAS = {0: (-1, 0), 1: (1, 0), 2: (0, -1), 3: (0, 1)}  # up, down, left, right
 OUTCOME_BGR = {"on_time": (60, 170, 60), "missed": (40, 40, 220), "not_ready": (150, 150, 150)}
@@ -143,6 +148,7 @@ class Annotator:
         """The newest thumbnail (JPEG), replaced as a whole: safe to read from any thread."""
         self._grid: tuple[int, list[np.ndarray]] | None = None
         self._queue: queue.Queue[tuple | None] = queue.Queue(maxsize=QUEUE)
+        self._closing = False
         self._thread = threading.Thread(target=self._draw_loop, name="overlay", daemon=True)
         self._thread.start()
 
@@ -231,8 +237,12 @@ class Annotator:
 
     # -- in the drawing thread -------------------------------------------------------------------
     def _draw_loop(self) -> None:
-        _idle_priority()
         while (item := self._queue.get()) is not None:
+            with contextlib.suppress(OSError):  # again each time: the process may reset it
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), DRAWING_NICENESS)
+            if self._closing:  # what is still queued at the end is skipped: finish the file
+                self.skipped += 1
+                continue
             image, marks, overlay, repeats, thumbnail = item
             h, w = image.shape[:2]
             size = (round(w * VIDEO_SCALE), round(h * VIDEO_SCALE))
@@ -260,25 +270,14 @@ class Annotator:
         return self._writer
 
     def close(self) -> dict[str, int]:
-        """Finish what is queued and the video file; what was written and skipped."""
+        """Finish the frame being drawn and the video file (what is still queued is skipped);
+        what was written and skipped."""
+        self._closing = True
         self._queue.put(None)
         self._thread.join()
         if self._writer is not None:
             self._writer.release()
         return {"video_frames": self.written, "skipped": self.skipped}
-
-
-def _idle_priority() -> None:
-    """The calling thread runs only when nothing else of its process wants the CPU (Linux
-    ``SCHED_IDLE``, per thread, no privilege needed): the video has seconds, the vision a
-    frame, a command 10 ms. Nicety alone was not enough: this process shares the edge's
-    session, and so the loop's share of the CPU (Linux autogroups), and drawing and encoding
-    take a tenth of a core; elsewhere, the thread is made nicer."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        with contextlib.suppress(OSError):
-            os.nice(DRAWING_NICENESS)
 
 
 def _pt(p: np.ndarray, scale: float) -> tuple[int, int]:
