@@ -132,7 +132,7 @@ def _parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     out.add_argument(
         "--web", metavar="HOST:PORT", help="serve the live page and Prometheus /metrics here "
-        "(e.g. 127.0.0.1:8080; port 0 picks a free one); off by default",
+        "(a port alone is on 127.0.0.1; port 0 picks a free one); off by default",
     )  # fmt: skip
     out.add_argument(
         "--web-token", default=os.environ.get(WEB_TOKEN_ENV), metavar="TOKEN",

@@ -34,13 +34,14 @@ class WebError(ValueError):
 
 
 def web_address(text: str, token: str | None) -> tuple[str, int]:
-    """``HOST:PORT`` of ``--web``; a non-loopback host needs a token, and a token must be long
-    enough to guess at no better than chance. The web view's libraries must be installed."""
+    """``HOST:PORT`` of ``--web`` (a port alone is on 127.0.0.1); a non-loopback host needs a
+    token, and a token must be long enough to guess at no better than chance. The web view's
+    libraries must be installed."""
     missing = [m for m in ("aiohttp", "prometheus_client") if not importlib.util.find_spec(m)]
     if missing:
         raise WebError(f"--web needs {' and '.join(missing)}: pip install 'udan-edge[web]'")
     try:
-        host, port = host_port(text, "--web")
+        host, port = host_port(f"127.0.0.1:{text}" if text.isdigit() else text, "--web")
     except TransportError as err:
         raise WebError(str(err)) from None
     if token is not None and len(token) < MIN_TOKEN_CHARS:

@@ -30,6 +30,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from test_edge_cli import _ask, _world_and_edge
 
+from udan.edge.live import web_address
 from udan.edge.web import COMMAND_NAMES
 from udan.fleetfile import write_fleet
 from udan.models import bundled_policy
@@ -341,7 +342,7 @@ def _camera_folder(folder: Path) -> str:
         ("0.0.0.0:0", None, "needs --web-token"),
         ("192.168.1.20:8080", None, "needs --web-token"),
         ("127.0.0.1:0", "short", "at least 16 characters"),
-        ("8080", None, "--web must be HOST:PORT"),
+        ("localhost:http", None, "--web must be HOST:PORT"),
     ],
 )
 def test_bad_web_options_are_one_line_and_exit_2(tmp_path, web, token, message):
@@ -356,6 +357,11 @@ def test_bad_web_options_are_one_line_and_exit_2(tmp_path, web, token, message):
     assert done.stderr.count("\n") == 1 and message in done.stderr, done.stderr
     if token is not None:
         assert token not in done.stdout + done.stderr
+
+
+def test_a_port_alone_is_served_on_loopback() -> None:
+    assert web_address("8080", None) == ("127.0.0.1", 8080)
+    assert web_address("[::1]:8080", None) == ("::1", 8080)
 
 
 def test_a_port_in_use_is_one_line_and_exit_2(tmp_path):
