@@ -316,7 +316,7 @@ class EdgeCollector:
             ("udan_groups", "Groups at the last step", len(step.get("groups", []))),
             ("udan_leaders", "Group leaders at the last step",
              len({g[0] for g in step.get("groups", [])})),
-            ("udan_frame_age_seconds", "Age of the newest frame the loop has", _s(
+            ("udan_newest_frame_age_seconds", "Age of the newest frame the loop has", _s(
                 snapshot.get("frame_age_ns"))),
             ("udan_score", "Average return of the episode so far", step.get("score")),
             ("udan_stopped", "1 once every car has been sent an emergency stop",
