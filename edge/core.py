@@ -138,15 +138,27 @@ def _recentring_action(
     return next((steps[c] for c in order if allowed(c)), WAIT)
 
 
-def _late_executions(report: DispatchReport) -> int:
-    """An audit of the cars: a command a car executed (ACCEPTED, not a duplicate's ack, which
+def _executed_late(command: CommandReport) -> bool:
+    """An audit of the car: a command it executed (ACCEPTED, not a duplicate's ack, which
     carries the copy's later receive time) must have reached it by its deadline, judged in the
     car's own clock (the edge-clock estimate is only good to half a round trip)."""
-    return sum(
-        r.car_rx_us > r.car_deadline_us
-        for r in report.cars.values()
-        if r.acked and r.result == "accepted"
+    return (
+        command.acked
+        and command.result == "accepted"
+        and command.car_rx_us is not None
+        and command.car_deadline_us is not None
+        and command.car_rx_us > command.car_deadline_us
     )
+
+
+def _late_executions(report: DispatchReport) -> int:
+    """Commands of a step that a car executed past their validity (must stay 0)."""
+    return sum(_executed_late(r) for r in report.cars.values())
+
+
+def _late(command: CommandReport) -> bool:
+    """The command reached the car after its validity: refused as expired, or executed late."""
+    return command.result == "expired" or _executed_late(command)
 
 
 def _outcome(command: CommandReport) -> str:
@@ -452,7 +464,10 @@ class ControlCore:
         report: DispatchReport,
         state_ns: int,
     ) -> dict[str, Any]:
-        """What became of a step's commands; returns the step's telemetry record."""
+        """What became of a step's commands; returns the step's telemetry record: spans and
+        counts, and per car (keyed by its id as a string) its cell, heading, command, outcome,
+        sends, with the policy's groups (car ids, leader first) and the episode's score so far.
+        The live view, the annotated video and the flight recorder read this same record."""
         decided_ns = report.decision_ns
         rehearsed, self._rehearsed = self._rehearsed, False
         self.fleet.command.update(commands)
@@ -461,6 +476,7 @@ class ControlCore:
         late = _late_executions(report)
         acked = [r.acked_ns for r in cars if r.acked]
         every = len(commands)
+        returns = self.policy_step.returns
         return {
             "t_ns": decided_ns,
             "step": self.policy_step.t,
@@ -493,6 +509,14 @@ class ControlCore:
             "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
             "commands": {str(c): a for c, a in commands.items()},
             "offsets": self._offsets(state),
+            "sends": {str(c): r.attempts for c, r in report.cars.items()},
+            "late_cars": sorted(c for c, r in report.cars.items() if _late(r)),
+            "cells": {str(c): list(cell) for c, cell in state.cells.items()},
+            "headings_deg": {
+                str(c): round(math.degrees(pose[2]), 1) for c, pose in state.poses.items()
+            },
+            "groups": self.policy_step.groups(),
+            "score": sum(returns.values()) / len(returns) if returns else None,
         }
 
     def _offsets(self, state: FleetState) -> dict[str, list[float]]:

@@ -114,6 +114,14 @@ class DecisionStep:
             out[car] = out.get(car, 0.0) + float(self.slot_return[slot])
         return out
 
+    def groups(self) -> list[list[int]]:
+        """The policy's groups as they stand after the last step, as car ids, leader first then
+        by distance (a car in several groups bridges them); empty for a policy without them."""
+        groups = self.policy.groups
+        if groups.size == 0:
+            return []
+        return self.owner[groups].tolist()
+
     def layout(self, cells: Mapping[str, frozenset[tuple[int, int]]]) -> tuple[np.ndarray, ...]:
         """Rules cell codes (H, W) from the static cell markers the camera sees, and their
         padded observation bits; kept while the markers stay (they rarely change)."""

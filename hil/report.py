@@ -1,12 +1,14 @@
-"""The HIL report: ``summary.json`` plus PNGs (with matplotlib), from what the edge, the cars and
-the world counted.
+"""The HIL report: ``summary.json``, PNGs (with matplotlib) and ``report.html``, from what the
+edge, the cars and the world counted.
 
 - ``latency.png``: histograms of the timing model's spans (edge telemetry);
 - ``misses.png``: commands per car that missed their deadline (and were retried);
 - ``scores.png``: the paper-style table (cars x obstacles, average agent score) through the full
   loop beside the pure simulation of the same policy on the same layouts, and their gap;
 - ``motion.png``: each car's distance from its cell's centre and heading error at every step,
-  as the camera saw them, with the settling tolerance, and the re-centring rounds.
+  as the camera saw them, with the settling tolerance, and the re-centring rounds;
+- ``report.html``: all of it on one page, one file readable offline (the PNGs inside it as data
+  URIs, no script, nothing fetched), to mail or attach to a ticket.
 
 The motion figures (``motion`` in the summary, the issue's "Done when" in docs/motion.md) come
 from the edge's telemetry file: each step's and re-centring round's record says how far off
@@ -18,6 +20,8 @@ read from it.
 from __future__ import annotations
 
 import argparse
+import base64
+import html
 import importlib.util
 import json
 from collections import defaultdict
@@ -301,6 +305,8 @@ def write_report(
     counts = edge["counts"]
     headline = {
         "episodes": len(edge["episodes"]),
+        "episodes_planned": result.get("planned"),
+        "interrupted": result.get("interrupted"),
         "score_hil": scores["hil"],
         "score_sim": scores["sim"],
         "sim_to_hil_gap": scores["gap"],
@@ -340,11 +346,94 @@ def write_report(
         "motion": motion,
     }
     (folder / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    pictures = []
     if can_plot():
         _plot_latency(edge, folder / "latency.png")
         _plot_misses(edge, folder / "misses.png")
+        pictures = ["latency.png", "misses.png"]
         if rows:
             _plot_scores(rows, folder / "scores.png")
+            pictures.append("scores.png")
         if motion:
             _plot_motion(records, args.settle_mm, folder / "motion.png")
+            pictures.append("motion.png")
+    (folder / "report.html").write_text(
+        html_report(summary, {name: (folder / name).read_bytes() for name in pictures}),
+        encoding="utf-8",
+    )
     return summary
+
+
+PICTURE_TITLES = {
+    "scores.png": "Scores: the full loop beside the pure simulation",
+    "latency.png": "Latency of each span",
+    "misses.png": "Dispatch deadline per car",
+    "motion.png": "Each car's distance from its cell's centre and heading error, at every step",
+}
+
+
+def _table(rows: list[list[Any]], head: list[str] | None = None) -> str:
+    def cell(tag: str, value: Any) -> str:
+        text = "-" if value is None else value
+        return f"<{tag}>{html.escape(str(text))}</{tag}>"
+
+    out = ["<table>"]
+    if head:
+        out.append("<tr>" + "".join(cell("th", h) for h in head) + "</tr>")
+    out += ["<tr>" + "".join(cell("td", v) for v in row) + "</tr>" for row in rows]
+    return "\n".join([*out, "</table>"])
+
+
+def html_report(summary: dict[str, Any], pictures: dict[str, bytes]) -> str:
+    """The whole report as one HTML page: the headline, the score table, what each car
+    counted, the faults applied, and ``pictures`` (PNG bytes by file name) inlined."""
+    head = summary["headline"]
+    headline = [[k.replace("_", " "), v] for k, v in head.items() if not isinstance(v, dict)]
+    headline += [[f"p99 {k.replace('_', ' ')} (ms)", v] for k, v in head["p99_ms"].items()]
+    headline += [[f"exit of {k}", v] for k, v in head["exits"].items()]
+    cells = summary["scores"]["cells"]
+    score_rows = [[r["agents"], r["obstacles"], r["episodes"], r["hil"], r["sim"],
+                   round(r["sim"] - r["hil"], 3)] for r in cells]  # fmt: skip
+    per_car = summary["edge"].get("per_car", {})
+    kinds = sorted({k for counts in per_car.values() for k in counts})
+    car_rows = [[car, *(per_car[car].get(k, 0) for k in kinds)] for car in per_car]
+    events = [[e.get("at_s"), e["kind"], e.get("car")] for e in summary["events"]]
+    config = [[k, v] for k, v in summary["config"].items()]
+    figures = "\n".join(
+        f'<figure><img alt="{html.escape(PICTURE_TITLES[name])}" '
+        f'src="data:image/png;base64,{base64.b64encode(data).decode()}">'
+        f"<figcaption>{html.escape(PICTURE_TITLES[name])}</figcaption></figure>"
+        for name, data in sorted(pictures.items(), key=lambda kv: list(PICTURE_TITLES).index(kv[0]))
+    )
+    if not pictures:
+        figures = "<p>No plots: matplotlib is missing (pip install 'udan-edge[hil]').</p>"
+    stopped = head.get("interrupted")
+    banner = (
+        f"<p class=warn>Stopped by {html.escape(stopped)}: this report covers the "
+        f"{head['episodes']} episodes completed.</p>"
+        if stopped
+        else ""
+    )
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>udan-hil run report</title>
+<style>
+body {{ font: 14px system-ui, sans-serif; margin: 2em; color: #222; }}
+table {{ border-collapse: collapse; margin-bottom: 1.5em; }}
+td, th {{ border-bottom: 1px solid #ddd; padding: 2px 10px; text-align: left; }}
+img {{ max-width: 100%; }} .warn {{ color: #b00; font-weight: bold; }}
+</style></head><body>
+<h1>udan-hil run</h1>
+{banner}
+<h2>Headline</h2>
+{_table(headline)}
+<h2>Scores by cell (average agent return)</h2>
+{_table(score_rows, ["cars", "obstacles", "episodes", "full loop", "simulation", "sim − loop"])}
+{figures}
+<h2>Commands per car (the edge's count)</h2>
+{_table(car_rows, ["car", *kinds])}
+<h2>Faults applied</h2>
+{_table(events, ["at (s)", "kind", "car"]) if events else "<p>none</p>"}
+<h2>Configuration</h2>
+{_table(config)}
+</body></html>
+"""

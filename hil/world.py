@@ -47,6 +47,7 @@ import numpy as np
 
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage
+from udan.edge.sidecar import exit_with_parent
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import FREE, OBSTACLE, WALL, WATER
@@ -429,9 +430,7 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     try:
         model = CameraModel(**config["model"])
         renderer = Renderer(config["geometry"], model)
-        camera = VirtualCamera(
-            config["name"], model.width, model.height, video=config["video"], fps=config["fps"]
-        )
+        camera = VirtualCamera(config["name"], model.width, model.height, fps=config["fps"])
     except (OSError, ValueError) as err:
         conn.send(("error", str(err)))
         return
@@ -602,7 +601,6 @@ class WorldServer:
                 "model": model,
                 "geometry": self.geometry,
                 "name": args.camera_name,
-                "video": None if args.video is None else str(args.video),
                 "fps": args.fps,
                 "markers": self.world.markers,
             },
@@ -647,7 +645,6 @@ def _parser() -> argparse.ArgumentParser:
         help=f"how far moves stray: {', '.join(LEVELS)} (docs/motion.md)",
     )  # fmt: skip
     p.add_argument("--fps", type=float, default=40.0)
-    p.add_argument("--video", type=Path, help="record the camera to this MP4")
     p.add_argument("--control-port", type=int, default=0)
     p.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")
@@ -658,6 +655,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: serve until SIGTERM, then print the final counters as one JSON line."""
+    exit_with_parent()  # if whoever started us asked: its end is our SIGTERM
     args = _parser().parse_args(argv)
     try:
         server = WorldServer(args)

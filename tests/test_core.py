@@ -4,6 +4,9 @@ steps come out; no socket, no thread, no real clock. The policy is the bundled f
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import math
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -492,3 +495,39 @@ def test_a_recentring_round_whose_commands_all_missed_does_not_count(
             core.recentred(due, all_acked(due.commands, clock.ns, missed=[2] if i < 2 else []))
         core.wait_for_moves(clock.ns)
     assert [type(d) for d in dues] == [Recentring] * (core.motion.rounds + 2)
+
+
+def test_the_step_record_says_where_each_car_is_what_it_was_told_and_the_groups(
+    core: ControlCore, clock: Clock
+) -> None:
+    """What the live view, the video and the recorder draw from: per car its cell, heading,
+    command, outcome and sends, the groups as car ids (leader first), the score so far."""
+    cells = {11: (8, 1), 12: (8, 2), 13: (7, 1)}
+    headings = {11: 0.0, 12: math.radians(3), 13: -math.radians(4)}  # within the tolerance
+    frame = scene(0, cells)
+    frame.cars.update(
+        {m: dataclasses.replace(s, heading=headings[m]) for m, s in frame.cars.items()}
+    )
+    core.see(frame, ready={1, 2, 3}, now=0)
+    record = step(core, clock, core.due(frame, done, 0), missed={3})
+    assert record["cells"] == {"1": [8, 1], "2": [8, 2], "3": [7, 1]}
+    assert record["headings_deg"] == {"1": 0.0, "2": 3.0, "3": -4.0}
+    assert record["sends"] == {"1": 1, "2": 1, "3": 1}
+    assert record["outcomes"]["3"] == "missed" and record["late_cars"] == []
+    policy = core.policy_step.policy
+    assert record["groups"] and len(record["groups"]) == len(policy.groups)
+    car_of_slot = {slot: car for car, slot in core.fleet.slot.items()}
+    for group, slots in zip(record["groups"], policy.groups.tolist(), strict=True):
+        assert group == [car_of_slot[s] for s in slots]  # leader first, as formed
+    assert record["score"] == 0.0  # no step has ended yet
+    json.dumps(record)  # the telemetry file, the live view and the recorder take it as is
+
+
+def test_a_command_refused_as_expired_is_late_for_that_car(core: ControlCore, clock: Clock):
+    frame = see(core, clock, 0, TWO, ready={1, 2})
+    state = core.due(frame, done, clock.ns)
+    decision, commands, decided_ns = core.commands_for(state, clock.ns)
+    report = all_acked(commands, decided_ns, missed={2})
+    report.cars[2].result = "expired"
+    record = core.dispatched(state, decision, commands, report, clock.ns)
+    assert record["late_cars"] == [2] and record["late_executions"] == 0

@@ -12,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -106,10 +106,13 @@ def _ask(port: int, request: dict) -> dict:
 
 
 @contextlib.contextmanager
-def _world_and_edge(tmp_path: Path, fleet: Path) -> Iterator[tuple[int, subprocess.Popen, str]]:
-    """The HIL world and ``udan-edge`` (in a process group of its own, as a shell starts it) as
-    separate processes, every car joined and a few steps made; yields the world's control
-    port, the edge and the perception process's camera URL. Both are stopped afterwards."""
+def _world_and_edge(
+    tmp_path: Path, fleet: Path, extra: Sequence[str] = (), env: Mapping[str, str] | None = None
+) -> Iterator[tuple[int, subprocess.Popen, str]]:
+    """The HIL world and ``udan-edge`` (in a process group of its own, as a shell starts it,
+    with ``extra`` arguments and environment ``env``) as separate processes, every car joined
+    and a few steps made; yields the world's control port, the edge and the perception
+    process's camera URL. Both are stopped afterwards."""
     edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
     world = subprocess.Popen(
         [
@@ -128,8 +131,10 @@ def _world_and_edge(tmp_path: Path, fleet: Path) -> Iterator[tuple[int, subproce
                 "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
                 "--world", f"127.0.0.1:{control}", "--quiet",
                 "--report", str(tmp_path / "edge.json"), *(["--realtime"] if REALTIME else []),
+                *extra,
             ],
-            stderr=subprocess.PIPE, text=True, start_new_session=True,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+            env=env,
         )  # fmt: skip
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:

@@ -82,6 +82,11 @@ def test_no_faults_every_command_on_time_and_scores_match_the_simulation(
     assert sum(not r["rehearsed"] for r in steps) <= grew + 2
     for name in ("latency.png", "misses.png", "scores.png"):
         assert (tmp_path / name).stat().st_size > 1000
+    # the same on one page, readable offline: the plots inside it, nothing to fetch
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('src="data:image/png;base64,') == 3
+    assert "http://" not in page and "https://" not in page and "<script" not in page
+    assert f"<td>{head['episodes']}</td>" in page
 
 
 def test_forged_and_malformed_datagrams_are_dropped_and_counted(tmp_path: Path) -> None:

@@ -54,7 +54,6 @@ def test_the_camera_process_shows_the_world_and_stops_cleanly() -> None:
         "model": {"noise_sigma": 2.0},
         "geometry": ArenaGeometry(),
         "name": name,
-        "video": None,
         "fps": 40.0,
         "markers": MARKERS,
     }
