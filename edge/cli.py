@@ -23,25 +23,29 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from udan.edge.calibration import VisionError
 from udan.edge.camera import CameraError, FrameGrabber, open_camera
-from udan.edge.core import ControlCore
+from udan.edge.core import ControlCore, MotionRules
 from udan.edge.decide import DecisionStep, TaskError, task_of
 from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from udan.edge.fleet import Fleet
 from udan.edge.flightlog import FlightLogError
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
+from udan.edge.live import MIN_TOKEN_CHARS, LiveView, WebError, web_address
+from udan.edge.overlay import OverlaySettings
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.perception import (
     FrameRing,
@@ -55,7 +59,8 @@ from udan.edge.perception import (
 from udan.edge.recorder import DEFAULT_QUALITY, DEFAULT_RATE, FlightRecorder
 from udan.edge.replay import ReplayError
 from udan.edge.shell import EdgeShell, LoopConfig
-from udan.edge.telemetry import Telemetry
+from udan.edge.sidecar import exit_with_parent, parent_watch_env
+from udan.edge.telemetry import DEADLINE_NS, Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
 from udan.envs.errors import OneLineParser
 from udan.export.metadata import MetadataError, obs_spec, project_version
@@ -64,6 +69,7 @@ from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-edge"
 SIM_MARKER_BASE = 10
+WEB_TOKEN_ENV = "UDAN_WEB_TOKEN"
 
 
 class UsageError(ValueError):
@@ -125,6 +131,18 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="seconds to run (default: until Ctrl-C)")
     run.add_argument("--step-timeout", type=float, default=1.0, help="longest step wait (s)")
     run.add_argument("--lost", type=float, default=0.5, help="a car unseen this long leaves (s)")
+    run.add_argument(
+        "--settle-mm", type=float, default=30.0,
+        help="a car farther than this from its cell's centre is re-centred before a step",
+    )  # fmt: skip
+    run.add_argument(
+        "--settle-deg", type=float, default=5.0,
+        help="... or turned farther than this from facing up",
+    )  # fmt: skip
+    run.add_argument(
+        "--body-mm", type=float, default=220.0,
+        help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -140,6 +158,20 @@ def _parser() -> argparse.ArgumentParser:
     out.add_argument("--report", type=Path, help="write the totals as JSON here at exit")
     out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
     out.add_argument("--quiet", action="store_true", help="no live summary line")
+    out.add_argument(
+        "--video", type=Path, help="record the camera to this MP4 with what the controller "
+        "thinks drawn on it: cars, cells, groups, leaders, commands, score, latency",
+    )  # fmt: skip
+    out.add_argument(
+        "--web", metavar="HOST:PORT", help="serve the live page and Prometheus /metrics here "
+        "(a port alone is on 127.0.0.1; port 0 picks a free one); off by default",
+    )  # fmt: skip
+    out.add_argument(
+        "--web-token", default=os.environ.get(WEB_TOKEN_ENV), metavar="TOKEN",
+        help=f"enables the page's stop-all button for whoever gives this token (at least "
+        f"{MIN_TOKEN_CHARS} characters; needed for a non-loopback --web; default: "
+        f"${WEB_TOKEN_ENV}, which keeps it off the process list)",
+    )  # fmt: skip
     rec = p.add_argument_group("flight recorder")
     rec.add_argument("--record", type=Path, help="write the run's flight recording (MCAP) here")
     rec.add_argument(
@@ -165,10 +197,14 @@ def _parser() -> argparse.ArgumentParser:
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
-    sim.add_argument("--video", type=Path, help="record the virtual camera to this MP4")
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
     sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
+
+
+def _half_cell_m() -> float:
+    """Half a cell's side (metres): a car farther than that off centre is in another cell."""
+    return ArenaGeometry().cell_m / 2
 
 
 def _writable(path: Path | None, what: str) -> None:
@@ -227,6 +263,7 @@ def _recording_meta(
     cars: list[CarEntry],
     perception: Perception,
     config: LoopConfig,
+    motion: MotionRules,
 ) -> dict[str, Any]:
     """The run's metadata for its flight recording (no key of any car: ids, markers and
     addresses only)."""
@@ -256,6 +293,7 @@ def _recording_meta(
         "vision": dataclasses.asdict(settings),
         "lost_s": args.lost,
         "loop": dataclasses.asdict(config),
+        "motion": dataclasses.asdict(motion),
         "perception": args.perception,
         "record": {"rate": args.record_rate, "quality": args.record_quality},
     }
@@ -270,31 +308,56 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.calibration,
         {c.marker: c.marker_height_m for c in cars},
     )
+    overlay = OverlaySettings(
+        None if args.video is None else str(args.video),
+        thumbnails=args.web is not None,
+        markers={c.car_id: c.marker for c in cars},
+    )
     ring = RingSpec(f"udan-ring-{os.getpid()}", args.record_rate) if args.record else None
-    # the perception process starts first and opens the camera while the model loads
+    # the perception (and web) processes start first and open the camera (bind the page's
+    # address) while the model loads
     perception: Perception | None = None
     if args.perception == "process":
-        perception = ProcessPerception(args.camera, settings, ring)
+        perception = ProcessPerception(args.camera, settings, ring, overlay)
+    live = None
     try:
+        if args.web is not None:
+            config = {
+                "rows": geometry.rows,
+                "cols": geometry.cols,
+                "cars": [c.car_id for c in cars],
+                "deadline_ms": DEADLINE_NS / 1e6,
+            }
+            live = LiveView(*web_address(args.web, args.web_token), args.web_token, config)
         policy, policy_step = load_policy(args.model, geometry)
         transport = open_transport(args.transport, cars, **_transport_options(args))
         if perception is None:
-            perception = ThreadPerception(
-                FrameGrabber(open_camera(args.camera)),
-                settings.build(),
-                None if ring is None else FrameRing(ring),
-            )
+            grabber = FrameGrabber(open_camera(args.camera))
+            frames = None if ring is None else FrameRing(ring)
+            perception = ThreadPerception(grabber, settings.build(), frames, overlay)
         perception.wait_ready()
+        if live is not None:
+            print(f"{PROG}: live view at {live.wait_ready()}", flush=True)
     except BaseException:
         if perception is not None:
             perception.close()
+        if live is not None:
+            live.close()
         raise
     for warning in perception.camera_info.get("warnings", []):
         print(f"{PROG}: warning: camera {args.camera}: {warning}", file=sys.stderr)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
+    motion = MotionRules(
+        args.settle_mm / 1000,
+        math.radians(args.settle_deg),
+        geometry=geometry,
+        body_m=args.body_mm / 1000,
+    )
     recorder = None
     if args.record is not None:
-        meta = _recording_meta(args, policy, policy_step.task, settings, cars, perception, config)
+        meta = _recording_meta(
+            args, policy, policy_step.task, settings, cars, perception, config, motion
+        )
         recorder = FlightRecorder(
             args.record, meta, ring=ring, rate=args.record_rate, quality=args.record_quality
         )
@@ -303,8 +366,8 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.telemetry, live=not args.quiet, tap=None if recorder is None else recorder.telemetry
     )
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, recorder)
-    shell = EdgeShell(perception, link, core, telemetry, config, recorder)
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion, recorder)
+    shell = EdgeShell(perception, link, core, telemetry, config, live, recorder)
     play = None
     if world is not None:
         play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
@@ -315,12 +378,16 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         perception.close()
         if recorder is not None:
             recorder.close()
+        if live is not None:
+            live.close()
         raise
     try:
         report = await shell.run(play)
     finally:
         await link.close()
         telemetry.close()
+        if live is not None:
+            live.close()
         recording = None if recorder is None else recorder.close()
     if recording is not None:
         report["recording"] = recording
@@ -335,12 +402,12 @@ def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) 
         "--agents", f"1-{args.cars}", "--obstacles", args.obstacles, "--seed", str(args.seed),
         "--cell-time-ms", str(args.cell_time_ms),
     ]  # fmt: skip
-    if args.video:
-        cmd += ["--video", str(args.video)]
     INTERRUPTS.hold()  # a signal inside Popen would leave the world running and unnamed
     proc = None
     try:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, text=True, start_new_session=True, env=parent_watch_env()
+        )
         INTERRUPTS.release()
         line = proc.stdout.readline() if proc.stdout else ""
         ready = json.loads(line)
@@ -451,6 +518,9 @@ def _replay(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     line += f"{identical} as recorded ({share})"
     if identical < steps:
         line += f", {steps - identical} differ ({decisions['commands_differing']} commands)"
+    rounds, rounds_same = decisions["recentring_rounds"], decisions["recentring_identical"]
+    if rounds:
+        line += f"; {rounds_same} of {rounds} re-centring rounds as recorded"
     if decisions["journal_gaps"]:
         line += f" (the recording misses {decisions['journal_gaps']} of the core's inputs)"
     if args.vision:
@@ -465,11 +535,12 @@ def _replay(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         else:
             line += "; vision: no lossless frame with a recorded scene"
     report["final"] = line
-    return report, int(same and identical < steps)
+    return report, int(same and (identical < steps or rounds_same < rounds))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
+    exit_with_parent()  # if whoever started us asked (udan-hil run): its end is our SIGTERM
     args = _parser().parse_args(argv)
     INTERRUPTS.install()
     code = 0
@@ -486,6 +557,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.still is not None and not args.vision:
             raise UsageError("--still goes with --replay --vision")
         _writable(args.still, "--still")
+        if not (0 < args.settle_mm < 1000 * _half_cell_m() and 0 < args.settle_deg < 90):
+            raise UsageError(
+                f"--settle-mm {args.settle_mm:g} / --settle-deg {args.settle_deg:g}: a tolerance "
+                f"must be above 0 and below half a cell ({1000 * _half_cell_m():.0f} mm) "
+                "and 90 degrees"
+            )
+        if not 0 < args.body_mm < 2000 * _half_cell_m():
+            raise UsageError(
+                f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
+                f"cell ({2000 * _half_cell_m():.0f} mm)"
+            )
+        if args.web is not None:
+            web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:
             _realtime()
         if args.replay is not None:
@@ -502,7 +586,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = _event_loop_runner()(runner)
     except (
         UsageError, CameraError, VisionError, FleetFileError, TransportError, TaskError,
-        WorldError, FlightLogError, ReplayError,
+        WorldError, WebError, FlightLogError, ReplayError,
     ) as err:  # fmt: skip
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
@@ -515,7 +599,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # outside the run: no car is being driven
         print(f"{PROG}: stopped by a signal while starting or closing", file=sys.stderr)
         return 0
-    except Exception as err:  # every car got its emergency stop in the runtime's finally
+    except Exception as err:  # a bug (every car got its emergency stop in the runtime's finally)
+        traceback.print_exc()  # what a bug report needs; the last line says it in one
         print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
         return 1
     report["scheduler"] = scheduler()

@@ -14,13 +14,17 @@ metadata holds one reading of it beside the realtime clock, to turn it into wall
 - ``/core/due``: each step check: ``now`` and the cars the link said were still moving.
 - ``/core/fleet_state``, ``/core/decision``: each decision's fleet state (slots, fresh cars,
   cells, static cells, held cells, moving and uncertain cars) and the decision (``now``, the
-  decision clock, the policy's actions, the commands after the safety filter, rewards, spans).
+  decision clock, the policy's actions, the commands after the safety filter, rewards, spans,
+  each command's guidance: target pose and start delay, and the car whose ACK it waits for).
 - ``/link/dispatch``: each command's sends and ack (first send, attempts, ack time, the car's
   receive time, result).
-- ``/core/control``: the core's other calls (``start``, ``wait_for_moves``, ``new_episode``,
-  ``credit_last_step``, ``emergency_stop``).
-- ``/edge/step``, ``/edge/frame``, ``/edge/event``: the telemetry records (each step's spans
-  and counts, each frame's age and frame-to-state span; joins, leaves, stalls, camera news).
+- ``/core/recentred``: each re-centring round (the cars off their cells' centres, each car's
+  command and target) with its dispatch, as on ``/link/dispatch``.
+- ``/core/control``: the core's other calls (``start``, ``guard`` with the cars still moving,
+  ``wait_for_moves``, ``new_episode``, ``credit_last_step``, ``emergency_stop``).
+- ``/edge/step``, ``/edge/recentre``, ``/edge/frame``, ``/edge/event``: the telemetry records
+  (each step's and re-centring round's spans and counts, each frame's age and frame-to-state
+  span; joins, leaves, stalls, guard stops, camera news).
 
 The JSON channels carry a JSON Schema each. Messages of the core's journal (every topic above
 but the camera's and the telemetry's) carry ``seq``, the order the core consumed them in (also
@@ -42,16 +46,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:  # the recorder process writes them; only a replay builds them again
-    from udan.edge.core import StepTiming
+    from udan.edge.core import Recentring, StepTiming
     from udan.edge.decide import Decision
     from udan.edge.fleet import FleetState
     from udan.edge.link import DispatchReport
+    from udan.edge.protocol import Guidance
     from udan.edge.vision import Scene
 
 PROFILE = "udan-edge"
 """The MCAP header's profile of a flight recording."""
 META = "udan-edge"
 """Name of the run's MCAP metadata record."""
+META_KEYS = ("model", "model_sha256", "task", "fleet", "vision", "lost_s", "motion")
+"""What a replay reads of the metadata."""
 CALIBRATION_ATTACHMENT = "calibration.yaml"
 LOSSLESS_TOPIC = "/camera/lossless"
 JPEG_TOPIC = "/camera/jpeg"
@@ -61,10 +68,13 @@ DUE_TOPIC = "/core/due"
 STATE_TOPIC = "/core/fleet_state"
 DECISION_TOPIC = "/core/decision"
 DISPATCH_TOPIC = "/link/dispatch"
+RECENTRED_TOPIC = "/core/recentred"
 CONTROL_TOPIC = "/core/control"
-TELEMETRY_TOPICS = {"step": "/edge/step", "frame": "/edge/frame"}
+TELEMETRY_TOPICS = {"step": "/edge/step", "recentre": "/edge/recentre", "frame": "/edge/frame"}
 EVENT_TOPIC = "/edge/event"
-JOURNAL_TOPICS = (SCENE_TOPIC, DUE_TOPIC, DECISION_TOPIC, DISPATCH_TOPIC, CONTROL_TOPIC)
+JOURNAL_TOPICS = (
+    SCENE_TOPIC, DUE_TOPIC, DECISION_TOPIC, DISPATCH_TOPIC, RECENTRED_TOPIC, CONTROL_TOPIC,
+)  # fmt: skip
 
 
 class FlightLogError(ValueError):
@@ -94,6 +104,20 @@ _SIGHTING = _obj(
     },
     ("marker", "cell", "xy", "heading", "offset", "inside", "uncertain", "error_budget_m"),
 )  # fmt: skip
+_GUIDE = _obj({"target": _arr(_NUM), "delay": _NUM}, ("target", "delay"))
+_NULL_INT = {"type": ["integer", "null"]}
+_DISPATCH = {
+    **_SEQ, "state_ns": _INT, "decision_ns": _INT, "deadline_ns": _INT,
+    "cars": _arr(_obj({
+        "car_id": _INT, "action": _INT, "seq": _INT, "first_sent_ns": _NULL_INT,
+        "attempts": _INT, "acked": _BOOL, "acked_ns": _NULL_INT, "car_received_ns": _NULL_INT,
+        "result": _STR, "car_deadline_us": _NULL_INT, "car_rx_us": _NULL_INT,
+        "slow_sends": _INT,
+    }, ("car_id", "action", "acked", "result"))),
+    "on_time": _INT, "retried": _INT, "missed": _INT, "not_ready": _INT,
+    "slow_sends": _INT, "late_sends": _INT,
+}  # fmt: skip
+_DISPATCH_REQUIRED = ("seq", "state_ns", "decision_ns", "deadline_ns", "cars")
 SCHEMAS: dict[str, dict[str, Any]] = {
     SCENE_TOPIC: _obj(
         {
@@ -119,31 +143,25 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "actions": _arr(_INT), "commands": _arr(_INT), "rewards": _arr(_NUM),
             "blocked": _INT, "stopped": _INT, "formed": _BOOL,
             "spans_ns": {"type": "object", "additionalProperties": _INT},
+            "guidance": {"type": "object", "additionalProperties": _GUIDE},
+            "after": {"type": "object", "additionalProperties": _INT},
         },
         ("seq", "now_ns", "decided_ns", "cars", "actions", "commands", "rewards"),
     ),
-    DISPATCH_TOPIC: _obj(
-        {
-            **_SEQ, "state_ns": _INT, "decision_ns": _INT, "deadline_ns": _INT,
-            "cars": _arr(_obj({
-                "car_id": _INT, "action": _INT, "seq": _INT,
-                "first_sent_ns": {"type": ["integer", "null"]}, "attempts": _INT,
-                "acked": _BOOL, "acked_ns": {"type": ["integer", "null"]},
-                "car_received_ns": {"type": ["integer", "null"]}, "result": _STR,
-                "car_deadline_us": {"type": ["integer", "null"]},
-                "car_rx_us": {"type": ["integer", "null"]}, "slow_sends": _INT,
-            }, ("car_id", "action", "acked", "result"))),
-            "on_time": _INT, "retried": _INT, "missed": _INT, "not_ready": _INT,
-            "slow_sends": _INT, "late_sends": _INT,
-        },
-        ("seq", "state_ns", "decision_ns", "deadline_ns", "cars"),
+    DISPATCH_TOPIC: _obj(_DISPATCH, _DISPATCH_REQUIRED),
+    RECENTRED_TOPIC: _obj(
+        {**_DISPATCH, "frame": _INT, "cars_off": _arr(_INT),
+         "commands": {"type": "object", "additionalProperties": _INT},
+         "guidance": {"type": "object", "additionalProperties": _GUIDE}},
+        (*_DISPATCH_REQUIRED, "frame", "cars_off", "commands", "guidance"),
     ),
     CONTROL_TOPIC: _obj(
         {
             **_SEQ,
-            "call": {"enum": ["start", "wait_for_moves", "new_episode", "credit_last_step",
-                              "emergency_stop"]},
-            "now_ns": _INT, "rewards": {"type": ["array", "null"], "items": _NUM},
+            "call": {"enum": ["start", "guard", "wait_for_moves", "new_episode",
+                              "credit_last_step", "emergency_stop"]},
+            "now_ns": _INT, "moving": _arr(_INT),
+            "rewards": {"type": ["array", "null"], "items": _NUM},
             "step_timeout_ns": _INT, "unseen_grace_ns": _INT,
         },
         ("seq", "call"),
@@ -203,6 +221,21 @@ def state_json(seq: int, state: FleetState) -> dict[str, Any]:
     }
 
 
+def decided(decision: Decision) -> dict[str, Any]:
+    """What a decision decided, as recorded (a replay's decision must give the same)."""
+    return {
+        "cars": [int(c) for c in decision.cars],
+        "actions": decision.actions.tolist(),
+        "commands": decision.commands.tolist(),
+        "rewards": [float(r) for r in decision.rewards],
+        "blocked": decision.blocked,
+        "stopped": decision.stopped,
+        "formed": bool(decision.formed),
+        "guidance": guidance_json(decision.guidance),
+        "after": {str(c): int(leader) for c, leader in decision.after.items()},
+    }
+
+
 def decision_json(
     seq: int, now: int, decided_ns: int, state: FleetState, decision: Decision
 ) -> dict[str, Any]:
@@ -211,14 +244,16 @@ def decision_json(
         "now_ns": now,
         "decided_ns": decided_ns,
         "frame": state.frame,
-        "cars": [int(c) for c in decision.cars],
-        "actions": decision.actions.tolist(),
-        "commands": decision.commands.tolist(),
-        "rewards": [float(r) for r in decision.rewards],
-        "blocked": decision.blocked,
-        "stopped": decision.stopped,
-        "formed": bool(decision.formed),
+        **decided(decision),
         "spans_ns": dict(decision.spans_ns),
+    }
+
+
+def guidance_json(guidance: Mapping[int, Guidance]) -> dict[str, dict[str, Any]]:
+    """Each command's target pose and start delay (the measured pose is in the scene)."""
+    return {
+        str(c): {"target": [float(v) for v in g.target], "delay": float(g.delay)}
+        for c, g in guidance.items()
     }
 
 
@@ -240,6 +275,16 @@ def dispatch_json(seq: int, state_ns: int, report: DispatchReport) -> dict[str, 
     }
 
 
+def recentred_json(seq: int, recentring: Recentring, report: DispatchReport) -> dict[str, Any]:
+    return {
+        **dispatch_json(seq, report.decision_ns, report),  # decided as dispatched
+        "frame": recentring.frame,
+        "cars_off": [int(c) for c in recentring.cars],
+        "commands": {str(c): int(a) for c, a in recentring.commands.items()},
+        "guidance": guidance_json(recentring.guidance),
+    }
+
+
 def control_json(seq: int, call: str, inputs: tuple) -> dict[str, Any]:
     out: dict[str, Any] = {"seq": seq, "call": call}
     if call == "start":
@@ -248,6 +293,8 @@ def control_json(seq: int, call: str, inputs: tuple) -> dict[str, Any]:
                    unseen_grace_ns=timing.unseen_grace_ns)  # fmt: skip
     elif call in ("wait_for_moves", "new_episode"):
         out["now_ns"] = inputs[0]
+    elif call == "guard":
+        out["moving"] = sorted(int(c) for c in inputs[0])
     elif call == "credit_last_step":
         rewards = inputs[0]
         out["rewards"] = None if rewards is None else [float(r) for r in rewards]
@@ -335,6 +382,7 @@ class FlightLog:
 
 _CALL_OF_TOPIC = {
     SCENE_TOPIC: "see", DUE_TOPIC: "due", DECISION_TOPIC: "decide", DISPATCH_TOPIC: "dispatched",
+    RECENTRED_TOPIC: "recentred",
 }  # fmt: skip
 
 
@@ -380,6 +428,12 @@ def read_flight_log(path: str | Path) -> FlightLog:
             if not meta_records:
                 raise FlightLogError(f"{path} has no udan-edge metadata")
             meta = {k: json.loads(v) for k, v in meta_records[0].metadata.items()}
+            missing = [key for key in META_KEYS if key not in meta]
+            if missing:
+                raise FlightLogError(
+                    f"{path} was written by another version: its metadata has no "
+                    f"{', '.join(missing)}"
+                )
             calibration = next(
                 (a.data for a in reader.iter_attachments() if a.name == CALIBRATION_ATTACHMENT),
                 None,

@@ -57,6 +57,7 @@ from udan.edge.camera import (
     yield_to_dispatch,
 )
 from udan.edge.geometry import ArenaGeometry
+from udan.edge.overlay import NO_OVERLAY, Annotator, OverlaySettings
 from udan.edge.pauses import freeze_garbage
 from udan.edge.sidecar import (
     MESSAGE_BYTES,
@@ -239,6 +240,20 @@ class Perception(ABC):
 
     sweep_frames: int
     """Frames one sweep of the whole image takes (:attr:`udan.edge.vision.Vision.sweep_frames`)."""
+    overlay: OverlaySettings = NO_OVERLAY
+    """What is drawn onto the frames (:mod:`udan.edge.overlay`): the annotated video, the
+    live page's thumbnails; nothing by default."""
+    video: dict[str, int] | None = None
+    """Once closed, what the annotated video got: frames written, frames skipped."""
+
+    @property
+    @abstractmethod
+    def thumbnail(self) -> bytes | None:
+        """The newest camera thumbnail with the detections drawn (JPEG), when asked for."""
+
+    @abstractmethod
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        """The last step (:func:`udan.edge.overlay.overlay_of`), to be drawn on the frames."""
 
     @property
     @abstractmethod
@@ -308,11 +323,17 @@ class ThreadPerception(Perception):
     executor, both in the edge process and under its interpreter lock."""
 
     def __init__(
-        self, grabber: FrameGrabber, vision: Vision, ring: FrameRing | None = None
+        self,
+        grabber: FrameGrabber,
+        vision: Vision,
+        ring: FrameRing | None = None,
+        overlay: OverlaySettings = NO_OVERLAY,
     ) -> None:
         self.grabber = grabber
         self.vision = vision
         self.ring = ring
+        self.overlay = overlay
+        self._annotator = Annotator(overlay, vision) if overlay.wanted else None
         self.sweep_frames = vision.sweep_frames
         self._pool = ThreadPoolExecutor(
             1, thread_name_prefix="vision", initializer=yield_to_dispatch
@@ -343,8 +364,18 @@ class ThreadPerception(Perception):
     def ended(self) -> bool:
         return self._analysing is None and self.grabber.ended
 
+    @property
+    def thumbnail(self) -> bytes | None:
+        return None if self._annotator is None else self._annotator.thumbnail
+
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        if self._annotator is not None:
+            self._annotator.step(overlay)
+
     def _analyse(self, frame: Frame) -> Scene:
         scene = self.vision.process(frame)
+        if self._annotator is not None:
+            self._annotator.frame(frame, scene)
         if self.ring is not None:
             self.ring.analysed(frame)
         return scene
@@ -378,6 +409,8 @@ class ThreadPerception(Perception):
         self._pool.shutdown(wait=True)
         if self.ring is not None:
             self.ring.close()
+        if self._annotator is not None:
+            self.video = self._annotator.close()
 
 
 # -- in a process of its own ----------------------------------------------------------------
@@ -389,15 +422,18 @@ class ProcessPerception(Perception):
         camera: str,
         settings: VisionSettings = VisionSettings(),
         ring: RingSpec | None = None,
+        overlay: OverlaySettings = NO_OVERLAY,
     ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
         caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
         it analysed there for the flight recorder (:class:`FrameRing`)."""
         self.camera = camera
+        self.overlay = overlay
         self.sweep_frames = 0
         self._camera_info: dict[str, Any] = {}
         self._counts: dict[str, int] = {"captured": 0, "dropped": 0}
         self._news: list[tuple[str, dict[str, Any]]] = []
+        self._thumbnail: bytes | None = None
         self._superseded = 0  # scenes superseded here before the loop took them
         self._scene: Scene | None = None
         self._taken: FrameTaken | None = None
@@ -411,6 +447,8 @@ class ProcessPerception(Perception):
         args = ["--camera", camera, "--vision", settings.to_json()]
         if ring is not None:
             args += ["--ring", ring.name, "--ring-rate", str(ring.rate)]
+        if overlay.wanted:
+            args += ["--overlay", overlay.to_json()]
         self._sock, self._proc = spawn("udan.edge.perception", args)
 
     def wait_ready(self) -> None:
@@ -467,6 +505,14 @@ class ProcessPerception(Perception):
     def ended(self) -> bool:
         return self._stream_ended and self._scene is None
 
+    @property
+    def thumbnail(self) -> bytes | None:
+        return self._thumbnail
+
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        if self.overlay.wanted and not self._stream_ended:
+            self._send(("step", overlay))
+
     def start(self) -> None:
         self.wait_ready()
         if self._reading is None:
@@ -508,7 +554,11 @@ class ProcessPerception(Perception):
         elif kind == "scene":
             if self._scene is not None:
                 self._superseded += 1
-            self._scene = body[0]
+            self._scene = body[0].after(self._scene)
+        elif kind == "thumbnail":
+            self._thumbnail = body[0]
+        elif kind == "video":
+            self.video = body[0]
         elif kind == "error":
             self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
             return
@@ -566,8 +616,10 @@ class ProcessPerception(Perception):
             with contextlib.suppress(OSError, EOFError, pickle.UnpicklingError):
                 while data := self._sock.recv(MESSAGE_BYTES):
                     kind, *body = pickle.loads(data)
-                    if kind in ("taken", "scene", "news", "end"):
+                    if kind in ("taken", "scene", "news", "thumbnail", "end"):
                         self._counts = body[-1]
+                    if kind == "video":
+                        self.video = body[0]
             self._stream_ended = True
         self._sock.close()
         reap(self._proc)
@@ -586,24 +638,37 @@ class _Server:
         grabber: FrameGrabber,
         vision: Vision,
         ring: FrameRing | None = None,
+        annotator: Annotator | None = None,
     ) -> None:
         self.sock = sock
         self.grabber = grabber
         self.vision = vision
         self.ring = ring
+        self.annotator = annotator
+        self._thumbnail: bytes | None = None  # the last one sent
         self.not_before_ns = 0
         self.unsent = 0
         """Scenes the edge's full socket had no room for (it is not reading: they are old)."""
+        self.unsent_scene: Scene | None = None
+        """The last of them, whose warnings go with the next scene sent."""
         self.stopping = asyncio.Event()
 
-    def send(self, *message: Any) -> None:
-        """A message with the counts so far; a scene the socket has no room for is dropped."""
+    def send(self, *message: Any) -> bool:
+        """A message with the counts so far; a scene the socket has no room for is dropped.
+        Returns whether it was sent."""
         counts = {**self.grabber.counters(), **ring_counts(self.ring)}
         counts["dropped"] += self.unsent
         try:
             self.sock.send(pickle.dumps((*message, counts)))
         except BlockingIOError:
             self.unsent += message[0] == "scene"
+            return False
+        return True
+
+    def send_scene(self, scene: Scene) -> None:
+        """A scene (:meth:`send`); the warnings of one dropped go with the next."""
+        scene = scene.after(self.unsent_scene)
+        self.unsent_scene = None if self.send("scene", scene) else scene
 
     def control(self, data: bytes) -> None:
         """One message from the edge; an empty one (the edge has gone) is a stop."""
@@ -612,6 +677,8 @@ class _Server:
             self.not_before_ns = body[0]
         elif kind == "keep" and self.ring is not None:
             self.ring.keep(body[0])
+        elif kind == "step" and self.annotator is not None:
+            self.annotator.step(body[0])
         elif kind == "stop":
             self.stopping.set()
 
@@ -645,23 +712,43 @@ class _Server:
                 if frame is None or frame.t_capture_ns < self.not_before_ns:
                     continue
                 self.send("taken", frame.index, frame.t_capture_ns)
-                self.send("scene", self.vision.process(frame))
+                scene = self.vision.process(frame)
+                self.send_scene(scene)
+                if self.annotator is not None:
+                    self._annotate(frame, scene)
                 if self.ring is not None:
                     self.ring.analysed(frame)
         finally:
             stopping.cancel()
             loop.remove_reader(self.sock.fileno())
 
+    def _annotate(self, frame: Frame, scene: Scene) -> None:
+        """The frame to the annotator; its newest thumbnail to the edge if there is a new one
+        (one too large for a message is not sent)."""
+        assert self.annotator is not None
+        self.annotator.frame(frame, scene)
+        thumbnail = self.annotator.thumbnail
+        if thumbnail is not self._thumbnail and len(thumbnail or b"") < MESSAGE_BYTES - 64:
+            self._thumbnail = thumbnail
+            self.send("thumbnail", thumbnail)
+
 
 def _error_kind(err: Exception) -> str:
     return "camera" if isinstance(err, CameraError) else "vision"
 
 
-def serve(fd: int, camera: str, settings: VisionSettings, ring: RingSpec | None = None) -> int:
+def serve(
+    fd: int,
+    camera: str,
+    settings: VisionSettings,
+    ring: RingSpec | None = None,
+    overlay: OverlaySettings = NO_OVERLAY,
+) -> int:
     """The perception process: open ``camera`` and build the vision, say "ready" with the
     camera's granted mode (or the error, one line), wait for "start", then send scenes until
     told to stop or the edge goes away; with ``ring``, keep frames for the flight recorder
-    (:class:`FrameRing`)."""
+    (:class:`FrameRing`); draw the steps onto the frames when ``overlay`` asks (the video is
+    finished on the way out)."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -672,7 +759,8 @@ def serve(fd: int, camera: str, settings: VisionSettings, ring: RingSpec | None 
         return 2
     grabber = FrameGrabber(source)
     frames = None if ring is None else FrameRing(ring)
-    server = _Server(sock, grabber, vision, frames)
+    annotator = Annotator(overlay, vision) if overlay.wanted else None
+    server = _Server(sock, grabber, vision, frames, annotator)
     try:
         freeze_garbage()
         sock.send(pickle.dumps(("ready", vision.sweep_frames, camera_facts(source))))
@@ -685,6 +773,9 @@ def serve(fd: int, camera: str, settings: VisionSettings, ring: RingSpec | None 
         yield_process_to_dispatch()
         grabber.start()
         asyncio.run(server.serve())
+        if annotator is not None:
+            server.send("video", annotator.close())
+            annotator = None
         server.send("end")
     except (CameraError, VisionError) as err:
         with contextlib.suppress(OSError):
@@ -696,6 +787,8 @@ def serve(fd: int, camera: str, settings: VisionSettings, ring: RingSpec | None 
         grabber.close()
         if frames is not None:
             frames.close()
+        if annotator is not None:
+            annotator.close()
     return 0
 
 
@@ -708,9 +801,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
     parser.add_argument("--ring", help="keep frames for the flight recorder under this name")
     parser.add_argument("--ring-rate", type=float, default=0.0)
+    parser.add_argument("--overlay", type=OverlaySettings.from_json, default=NO_OVERLAY)
     args = parser.parse_args(argv)
     ring = None if args.ring is None else RingSpec(args.ring, args.ring_rate)
-    return serve(args.fd, args.camera, args.vision, ring)
+    return serve(args.fd, args.camera, args.vision, ring, args.overlay)
 
 
 if __name__ == "__main__":

@@ -59,8 +59,6 @@ RECORDER_BUFFER_BYTES = 4 << 20
 """What may wait in the socket for the recorder (a few seconds of a 5-car run's records)."""
 CLOSE_TIMEOUT_S = 60.0
 """Longest the edge waits at exit for the recorder to write what it holds and close the file."""
-PNG_LEVEL = 1
-"""zlib level of the lossless frames: the fastest; a higher one saves little on camera noise."""
 DEFAULT_RATE = 2.0
 """Frames a second written besides the decided ones (JPEG), by default."""
 DEFAULT_QUALITY = 80
@@ -380,6 +378,10 @@ class Writer:
             state_ns, report = inputs
             self.log.write(fl.DISPATCH_TOPIC, report.decision_ns,
                            fl.dispatch_json(seq, state_ns, report), seq)  # fmt: skip
+        elif call == "recentred":
+            recentring, report = inputs
+            self.log.write(fl.RECENTRED_TOPIC, report.decision_ns,
+                           fl.recentred_json(seq, recentring, report), seq)  # fmt: skip
         else:
             if call == "start":
                 self.last_ns = inputs[0]

@@ -1,13 +1,15 @@
 """Replaying a flight recording: ``udan-edge --replay run.mcap [--model B] [--vision]``.
 
 **Decisions.** A new :class:`~udan.edge.core.ControlCore`, with the recorded fleet's cars and
-markers and the recorded step timing, is fed the recorded journal entry by entry
+markers, the recorded step timing and motion rules, is fed the recorded journal entry by entry
 (:mod:`udan.edge.flightlog`): each scene with the link's ready cars and its ``now``, each step
 check with the cars the link said were still moving, each decision with the decision clock's
-recorded reading, each dispatch report, each episode start and end. No camera, no car and no
-clock of this machine takes part. With the recorded model, every decision comes out the same,
-bit for bit (actions, commands after the safety filter, rewards, blocked and stopped counts,
-whether groups formed); any that does not is reported. With another model (``--model B``, for the
+recorded reading, each dispatch report (of a step or of a re-centring round), each guard check,
+each episode start and end. No camera, no car and no clock of this machine takes part. With the
+recorded model, every decision comes out the same, bit for bit (actions, commands after the
+safety filter, rewards, blocked and stopped counts, whether groups formed, each command's target
+and start delay and the car it waits for), and so does every re-centring round (its cars,
+commands and targets); any that does not is reported. With another model (``--model B``, for the
 same task), each step shows what B would have decided in the situation the recorded model's
 commands had led to: a step-by-step shadow, not a run of B (its commands would have moved the
 cars elsewhere).
@@ -35,7 +37,7 @@ import numpy as np
 
 from udan.edge import flightlog as fl
 from udan.edge.camera import Frame
-from udan.edge.core import ControlCore
+from udan.edge.core import ControlCore, MotionRules, Recentring
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Fleet, FleetState
 from udan.edge.geometry import ArenaGeometry
@@ -61,15 +63,8 @@ def check_model(log: fl.FlightLog, task: str, model: Path) -> bool:
 
 # -- decisions --------------------------------------------------------------------------------
 def _same(recorded: dict[str, Any], decision: Decision) -> bool:
-    return (
-        recorded["cars"] == list(decision.cars)
-        and recorded["actions"] == decision.actions.tolist()
-        and recorded["commands"] == decision.commands.tolist()
-        and recorded["rewards"] == [float(r) for r in decision.rewards]
-        and recorded["blocked"] == decision.blocked
-        and recorded["stopped"] == decision.stopped
-        and recorded["formed"] == bool(decision.formed)
-    )
+    again = fl.decided(decision)
+    return all(recorded.get(key) == value for key, value in again.items())
 
 
 def _difference(step: int, recorded: dict[str, Any], decision: Decision | None) -> dict:
@@ -103,22 +98,37 @@ class _Now:
         return self.ns
 
 
+def motion_rules(log: fl.FlightLog) -> MotionRules:
+    """The recorded motion rules (settling tolerances, bodies, the cells' geometry)."""
+    recorded = dict(log.meta["motion"])
+    return MotionRules(**{**recorded, "geometry": ArenaGeometry(**recorded["geometry"])})
+
+
+def _same_round(recorded: dict[str, Any], recentring: Recentring) -> bool:
+    return (
+        recorded["cars_off"] == list(recentring.cars)
+        and recorded["commands"] == {str(c): a for c, a in recentring.commands.items()}
+        and recorded["guidance"] == fl.guidance_json(recentring.guidance)
+    )
+
+
 def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, Any]:
-    """Feed the recorded journal to a new core around ``policy_step``; each decision compared
-    with the recorded one."""
+    """Feed the recorded journal to a new core around ``policy_step``; each decision and each
+    re-centring round compared with the recorded one."""
     entries = log.entries
     start = next(e.message for e in entries if e.call == "start")
     fleet_file = log.meta["fleet"]
     fleet = Fleet({c["id"]: c["marker"] for c in fleet_file}, lost_s=log.meta["lost_s"])
     clock = _Now(start["now_ns"])
-    core = ControlCore(fleet, policy_step, clock, log.timing)
+    core = ControlCore(fleet, policy_step, clock, log.timing, motion_rules(log))
     scene: Scene | None = None
     state: FleetState | None = None
+    recentring: Recentring | None = None
     decision: Decision | None = None
     commands: dict[int, int] = {}
-    steps = identical = commands_differing = 0
+    steps = identical = commands_differing = rounds = rounds_identical = 0
     differences: list[dict[str, Any]] = []
-    unexpected = 0  # steps the replay decided where the recording did not
+    unexpected = 0  # steps or rounds the replay made where the recording did not
     for k, entry in enumerate(entries):
         m = entry.message
         call = entry.call
@@ -126,9 +136,12 @@ def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, 
             scene = fl.scene_of(m)
             core.see(scene, m["ready"], m["now_ns"])
         elif call == "due":
-            state = core.due(scene, _finished(m["moving"]), m["now_ns"])
-            recorded_step = k + 1 < len(entries) and entries[k + 1].call == "decide"
-            unexpected += state is not None and not recorded_step
+            due = core.due(scene, _finished(m["moving"]), m["now_ns"])
+            state = due if isinstance(due, FleetState) else None
+            recentring = due if isinstance(due, Recentring) else None
+            recorded = entries[k + 1].call if k + 1 < len(entries) else None
+            unexpected += state is not None and recorded != "decide"
+            unexpected += recentring is not None and recorded != "recentred"
         elif call == "decide":
             steps += 1
             if state is None:
@@ -149,6 +162,21 @@ def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, 
             if state is not None and decision is not None:
                 core.dispatched(state, decision, commands, fl.report_of(m), m["state_ns"])
             state = decision = None
+        elif call == "recentred":
+            rounds += 1
+            if recentring is None:
+                differences.append({"round": rounds, "frame": m["frame"],
+                                    "replayed": "no re-centring round was due"})  # fmt: skip
+                continue
+            if _same_round(m, recentring):
+                rounds_identical += 1
+            else:
+                differences.append({"round": rounds, "frame": m["frame"], "recorded": m["cars_off"],
+                                    "replayed": list(recentring.cars)})  # fmt: skip
+            core.recentred(recentring, fl.report_of(m))
+            recentring = None
+        elif call == "guard" and scene is not None:
+            core.guard(scene, _finished(m["moving"]))
         elif call == "wait_for_moves":
             core.wait_for_moves(m["now_ns"])
         elif call == "new_episode":
@@ -163,6 +191,8 @@ def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, 
         "identical_share": round(identical / steps, 6) if steps else None,
         "differing": steps - identical,
         "commands_differing": commands_differing,
+        "recentring_rounds": rounds,
+        "recentring_identical": rounds_identical,
         "steps_not_recorded": unexpected,
         "journal_gaps": log.gaps(),
         "differences": differences,
