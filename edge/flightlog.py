@@ -386,6 +386,15 @@ _CALL_OF_TOPIC = {
 }  # fmt: skip
 
 
+def entry_of(topic: str, body: dict[str, Any]) -> Entry | None:
+    """The journal entry a message of ``topic`` is; None for the topics that are not."""
+    if topic in _CALL_OF_TOPIC:
+        return Entry(body["seq"], _CALL_OF_TOPIC[topic], body)
+    if topic == CONTROL_TOPIC:
+        return Entry(body["seq"], body["call"], body)
+    return None
+
+
 def _reader(stream: Any) -> Any:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
@@ -444,10 +453,9 @@ def read_flight_log(path: str | Path) -> FlightLog:
                     frames += 1
                     continue
                 body = json.loads(message.data)
-                if topic in _CALL_OF_TOPIC:
-                    entries.append(Entry(body["seq"], _CALL_OF_TOPIC[topic], body))
-                elif topic == CONTROL_TOPIC:
-                    entries.append(Entry(body["seq"], body["call"], body))
+                entry = entry_of(topic, body)
+                if entry is not None:
+                    entries.append(entry)
                 elif topic != STATE_TOPIC:
                     telemetry.append(body)
     except (McapError, EOFError, ValueError, KeyError, OSError) as err:

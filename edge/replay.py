@@ -164,15 +164,16 @@ def replay_decisions(log: fl.FlightLog, policy_step: DecisionStep) -> dict[str, 
             state = decision = None
         elif call == "recentred":
             rounds += 1
+            where = {"round": rounds, "after_step": steps, "frame": m["frame"]}
             if recentring is None:
-                differences.append({"round": rounds, "frame": m["frame"],
-                                    "replayed": "no re-centring round was due"})  # fmt: skip
+                differences.append({**where, "replayed": "no re-centring round was due"})
                 continue
             if _same_round(m, recentring):
                 rounds_identical += 1
             else:
-                differences.append({"round": rounds, "frame": m["frame"], "recorded": m["cars_off"],
-                                    "replayed": list(recentring.cars)})  # fmt: skip
+                differences.append(
+                    {**where, "recorded": m["cars_off"], "replayed": list(recentring.cars)}
+                )
             core.recentred(recentring, fl.report_of(m))
             recentring = None
         elif call == "guard" and scene is not None:

@@ -4,6 +4,7 @@ bit for bit with the same policy, the differences listed with another; no file, 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from test_core import (
 )
 
 from udan.edge import flightlog as fl
-from udan.edge.core import ControlCore
+from udan.edge.core import ControlCore, MotionRules, Recentring
 from udan.edge.decide import DecisionStep
 from udan.edge.fleet import Fleet
 from udan.edge.recorder import Writer
@@ -64,20 +65,16 @@ class _Journal:
         self.seq += 1
 
     def flight_log(self) -> fl.FlightLog:
-        calls = {fl.SCENE_TOPIC: "see", fl.DUE_TOPIC: "due", fl.DECISION_TOPIC: "decide",
-                 fl.DISPATCH_TOPIC: "dispatched"}  # fmt: skip
-        entries = [
-            fl.Entry(body["seq"], calls.get(topic) or body["call"], body)
-            for topic, body in self.out.messages
-            if topic in calls or topic == fl.CONTROL_TOPIC
-        ]
+        entries = [fl.entry_of(topic, body) for topic, body in self.out.messages]
         meta = {
             "fleet": [{"id": c, "marker": m} for c, m in MARKERS.items()],
             "lost_s": 0.5,
             "task": "find_water",
             "model_sha256": "",
+            "motion": dataclasses.asdict(MotionRules()),
         }
-        return fl.FlightLog(Path("journal"), meta, sorted(entries, key=lambda e: e.seq))
+        entries = sorted((e for e in entries if e is not None), key=lambda e: e.seq)
+        return fl.FlightLog(Path("journal"), meta, entries)
 
 
 def _step(policy: OnnxPolicy) -> DecisionStep:
@@ -86,8 +83,8 @@ def _step(policy: OnnxPolicy) -> DecisionStep:
 
 def _run(core: ControlCore, clock: Clock) -> list[dict[str, Any]]:
     """Two episodes with what a run meets: cars joining, a car the camera misses, a car too
-    near a border, the step period running out on a moving car, a car leaving; returns the
-    step records."""
+    near a border, a car off its cell's centre (re-centred first), the step period running out
+    on a moving car (the guard watching meanwhile), a car leaving; returns the step records."""
     records = []
     cells = {11: (8, 1), 12: (8, 4), 13: (8, 7)}
     for episode in range(2):
@@ -103,11 +100,17 @@ def _run(core: ControlCore, clock: Clock) -> list[dict[str, Any]]:
             else:
                 ready = [1, 2, 3]
             frame = scene(clock.ns, shown, STATIC, index=100 * episode + k,
-                          uncertain=[11] if k == 7 else ())  # fmt: skip
+                          uncertain=[11] if k == 7 else (),
+                          offsets={12: (0.05, 0.0)} if k == 2 else None)  # fmt: skip
             core.see(frame, ready, clock.ns)
             finished = busy if k in (3, 4) else done  # a move that runs past the period
             state = core.due(frame, finished, clock.ns)
             if state is None:
+                core.guard(frame, finished)
+                continue
+            if isinstance(state, Recentring):
+                core.recentred(state, all_acked(state.commands, clock.ns))
+                core.wait_for_moves(clock.ns)
                 continue
             state_ns = clock.ns
             clock.ns += MS
@@ -133,7 +136,7 @@ def _run(core: ControlCore, clock: Clock) -> list[dict[str, Any]]:
 def recorded() -> tuple[fl.FlightLog, list[dict[str, Any]], list[tuple[int, int]]]:
     policy = OnnxPolicy(bundled_policy(), expected=SPEC)
     journal, clock = _Journal(), Clock()
-    core = ControlCore(Fleet(MARKERS, lost_s=0.5), _step(policy), clock, TIMING, journal)
+    core = ControlCore(Fleet(MARKERS, lost_s=0.5), _step(policy), clock, TIMING, journal=journal)
     records = _run(core, clock)
     return journal.flight_log(), records, journal.out.wanted
 
@@ -147,6 +150,10 @@ def test_the_recorded_journal_replays_to_the_same_decisions(recorded):
     assert result["steps"] == len(records)
     assert result["identical"] == result["steps"] and result["differences"] == []
     assert result["steps_not_recorded"] == 0 and result["journal_gaps"] == 0
+    # the re-centring rounds (car 2 off its cell's centre) and the guard's checks too
+    assert result["recentring_rounds"] >= 2
+    assert result["recentring_identical"] == result["recentring_rounds"]
+    assert any(e.call == "guard" for e in log.entries)
 
 
 def test_a_changed_input_shows_as_a_differing_decision(recorded):
@@ -162,7 +169,7 @@ def test_a_changed_input_shows_as_a_differing_decision(recorded):
     result = replay_decisions(changed, _step(OnnxPolicy(bundled_policy(), expected=SPEC)))
     # the decisions before it are as recorded; it, or one after it, is not
     assert result["differing"] >= 1
-    assert min(d["step"] for d in result["differences"]) >= 6
+    assert min(d.get("step", d.get("after_step")) for d in result["differences"]) >= 6
 
 
 def test_another_policy_shows_what_it_would_have_decided(recorded):
@@ -170,7 +177,7 @@ def test_another_policy_shows_what_it_would_have_decided(recorded):
     result = replay_decisions(log, _step(OnnxPolicy(QMIX, expected=SPEC)))
     assert result["steps"] == len([e for e in log.entries if e.call == "decide"])
     assert result["differing"] > 0 and result["commands_differing"] > 0
-    first = result["differences"][0]
+    first = next(d for d in result["differences"] if "round" not in d)
     assert set(first) == {"step", "frame", "cars", "actions"}
 
 
