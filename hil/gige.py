@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from udan.edge.camera import CameraError, attach_frames
+from udan.edge.sidecar import exit_with_parent
 from udan.envs.errors import OneLineParser
 from udan.hil.world import CAMERA_NICENESS
 
@@ -201,6 +202,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Serve until SIGTERM or the virtual camera's end; print a ready line, then counts."""
+    exit_with_parent()  # udan-hil run asks: its end is our SIGTERM, however it ended
     args = _parser().parse_args(argv)
     if not 0.0 <= args.lost_ratio <= 1.0 or args.delay_ms < 0 or args.delay_block_s < 0:
         print(f"{PROG}: error: --lost-ratio in [0, 1], --delay-ms and --delay-block-s >= 0",
