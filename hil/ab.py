@@ -32,26 +32,39 @@ class Block:
     report: dict[str, Any] = field(repr=False)
 
 
-def sim_block(
-    extra: Sequence[str], folder: Path, seconds: float, warm_up_s: float, realtime: bool = False
-) -> Block:
-    """``udan-edge --sim --cars 5`` for ``seconds`` with ``extra`` arguments, in ``folder``."""
-    telemetry, report = folder / "telemetry.jsonl", folder / "report.json"
+def sim_command(extra: Sequence[str], folder: Path, seconds: float, realtime: bool) -> list[str]:
+    """``udan-edge --sim --cars 5`` for ``seconds`` with ``extra`` arguments, writing its
+    telemetry and report into ``folder`` (:func:`read_block` reads them)."""
     cmd = [UDAN_EDGE, "--sim", "--cars", "5", "--duration", str(seconds), "--quiet",
-           "--telemetry", str(telemetry), "--report", str(report), *extra]  # fmt: skip
-    cmd += ["--realtime"] if realtime else []
-    started_ns = time.monotonic_ns()
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise SystemExit(f"udan-edge exited {done.returncode}: {done.stderr[-500:]}")
+           "--telemetry", str(folder / "telemetry.jsonl"), "--report",
+           str(folder / "report.json"), *extra]  # fmt: skip
+    return cmd + (["--realtime"] if realtime else [])
+
+
+def read_block(folder: Path, started_ns: int, warm_up_s: float) -> Block:
+    """A finished run's block: every step's decision latency from ``warm_up_s`` after it
+    started, its deadline counts, its report."""
     warm_ns = started_ns + int(warm_up_s * 1e9)
-    records = (json.loads(line) for line in telemetry.read_text().splitlines())
+    lines = (folder / "telemetry.jsonl").read_text().splitlines()
+    records = (json.loads(line) for line in lines)
     decisions = [
         r["state_to_commands_ns"] for r in records if r["kind"] == "step" and r["t_ns"] >= warm_ns
     ]
-    result = json.loads(report.read_text())
+    result = json.loads((folder / "report.json").read_text())
     counts = result["counts"]
     return Block(np.asarray(decisions), counts.get("on_time", 0), counts.get("missed", 0), result)
+
+
+def sim_block(
+    extra: Sequence[str], folder: Path, seconds: float, warm_up_s: float, realtime: bool = False
+) -> Block:
+    """A run of :func:`sim_command`, read (:func:`read_block`)."""
+    started_ns = time.monotonic_ns()
+    done = subprocess.run(sim_command(extra, folder, seconds, realtime), capture_output=True,
+                          text=True)  # fmt: skip
+    if done.returncode != 0:
+        raise SystemExit(f"udan-edge exited {done.returncode}: {done.stderr[-500:]}")
+    return read_block(folder, started_ns, warm_up_s)
 
 
 def interleave(
