@@ -42,7 +42,8 @@ def _edge(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Recorded:
     """The HIL world and ``udan-edge --record`` on a fleet file of our own (its keys known),
-    for 15 s."""
+    for 15 s; the cars move as a lab's do (moves end off their cells' centres: re-centring
+    rounds, the guard watching)."""
     folder = tmp_path_factory.mktemp("recorded")
     fleet = write_fleet(folder / "fleet.toml", 2)
     edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
@@ -50,7 +51,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Recorded:
         [
             sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet),
             "--edge", f"127.0.0.1:{edge_port}", "--camera-name", camera, "--agents", "1-2",
-            "--obstacles", "0-3", "--cell-time-ms", "60",
+            "--obstacles", "0-3", "--cell-time-ms", "60", "--motion-error", "lab",
         ],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -144,6 +145,9 @@ def test_a_replay_with_the_recorded_model_decides_every_step_the_same(
     assert decisions["steps"] == recorded.report["counts"]["steps"]
     assert decisions["identical"] == decisions["steps"] and decisions["differences"] == []
     assert "as recorded (100.00 %)" in done.stdout
+    # the re-centring rounds of cars that ended their moves off centre, too
+    assert decisions["recentring_rounds"] == recorded.report["counts"]["recentre_rounds"] > 0
+    assert decisions["recentring_identical"] == decisions["recentring_rounds"]
 
 
 def test_a_replay_with_another_model_shows_what_it_would_have_done(
