@@ -17,6 +17,7 @@ import cv2
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from test_edge_cli import _world_and_edge
 
 from udan.edge import flightlog as fl
 from udan.edge.transport import free_udp_port
@@ -216,28 +217,9 @@ def test_an_edge_killed_mid_run_leaves_a_recording_that_replays(tmp_path: Path) 
     """The recorder finishes the file when the edge's end of its socket closes, however the
     edge ended: SIGKILLed mid-run, its recording still reads back and replays exactly."""
     fleet = write_fleet(tmp_path / "fleet.toml", 2)
-    edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
-    world = subprocess.Popen(
-        [
-            sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet),
-            "--edge", f"127.0.0.1:{edge_port}", "--camera-name", camera, "--agents", "2",
-            "--obstacles", "0", "--cell-time-ms", "60",
-        ],
-        stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    mcap = tmp_path / "run.mcap"
-    try:
-        control = json.loads(world.stdout.readline())["control_port"]
-        telemetry = tmp_path / "telemetry.jsonl"
-        edge = subprocess.Popen(
-            [
-                UDAN_EDGE, "--camera", f"virtual://{camera}", "--model", str(bundled_policy()),
-                "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
-                "--world", f"127.0.0.1:{control}", "--record", str(mcap), "--quiet",
-                "--telemetry", str(telemetry),
-            ],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
+    mcap, telemetry = tmp_path / "run.mcap", tmp_path / "telemetry.jsonl"
+    extra = ["--record", str(mcap), "--telemetry", str(telemetry)]
+    with _world_and_edge(tmp_path, fleet, extra) as (_, edge, _):
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and (
             not telemetry.exists() or telemetry.read_text().count('"kind":"step"') < 10
@@ -245,9 +227,6 @@ def test_an_edge_killed_mid_run_leaves_a_recording_that_replays(tmp_path: Path) 
             time.sleep(0.2)
         edge.kill()
         edge.wait(30)
-    finally:
-        world.send_signal(signal.SIGTERM)
-        world.wait(30)
     deadline = time.monotonic() + 60
     while True:  # the recorder writes what it holds and the file's end, then exits
         try:
