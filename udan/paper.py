@@ -28,7 +28,15 @@ import numpy as np
 
 from udan.envs import EnvConfigError
 from udan.envs.errors import parse_range
-from udan.evaluate import CellResult, CheckpointPolicy, evaluate, learning_curves, mean_ci
+from udan.evaluate import (
+    CellResult,
+    CheckpointPolicy,
+    evaluate,
+    format_ablation,
+    learning_curves,
+    mean_ci,
+    pooled_scores,
+)
 from udan.paths import FolderError, ensure_folder
 
 # ------------------------------------------------------------------ the paper's numbers
@@ -237,7 +245,7 @@ def verdict_table(results: list[CellResult], paper: dict[int, float], title: str
         "|---|---|---|---|---|",
     ]
     for n, ours in _by_agents(results).items():
-        mean, half = mean_ci(np.concatenate([r.scores for r in results if r.agents == n]))
+        mean, half = mean_ci(pooled_scores(results, n))
         theirs = paper.get(n)
         if theirs is None:
             cells = [_fmt(None), _fmt(None), f"the paper has no N = {n} column"]
@@ -280,27 +288,6 @@ def by_agents_table(
         row = [f"{values[n]:.2f}" for n in agents]
         spread = max(values.values()) - min(values.values())
         lines.append(f"| {label} | {trained[label]} | " + " | ".join(row) + f" | {spread:.2f} |")
-    return "\n".join(lines)
-
-
-def shuffle_table(full: list[CellResult], shuffled: list[CellResult], title: str) -> str:
-    """Per N: what shuffled messages (another episode's, same step) cost, paired on the same
-    episodes, with the 95 % CI of the paired difference."""
-    lines = [
-        f"**{title}**",
-        "",
-        "| N | full | messages shuffled | Δ [95 % CI] | Δ / full |",
-        "|---|---|---|---|---|",
-    ]
-    for n in sorted({r.agents for r in full}):
-        base = np.concatenate([r.scores for r in full if r.agents == n])
-        other = np.concatenate([r.scores for r in shuffled if r.agents == n])
-        mean, half = mean_ci(other - base)
-        share = mean / abs(base.mean()) if base.mean() else float("nan")
-        lines.append(
-            f"| {n} | {base.mean():.2f} | {other.mean():.2f} | "
-            f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}] | {share:+.1%} |"
-        )
     return "\n".join(lines)
 
 
@@ -436,9 +423,9 @@ def arena_section(
         if loaded["UDAN"].model.spec.communicates:
             shuffled = _play(loaded["UDAN"], env, agents, obstacles, settings, "messages=shuffle")
             out += [
-                shuffle_table(
+                format_ablation(
                     udan,
-                    shuffled,
+                    {"messages=shuffle": shuffled},
                     f"{table}: UDAN with shuffled messages, paired on the same episodes",
                 ),
                 "",
@@ -518,9 +505,9 @@ def control_section(settings: Settings) -> tuple[str, list[Loaded]]:
         "",
         *lines,
         "",
-        shuffle_table(
+        format_ablation(
             tables["UDAN"],
-            shuffled,
+            {"messages=shuffle": shuffled},
             "hidden_goal: UDAN with shuffled messages, paired on the same episodes",
         ),
         "",
