@@ -110,6 +110,7 @@ FIG7 = (
 #: The same for Fig. 8 (find-water).
 FIG8 = (
     ("UDAN", "find_water"),
+    ("UDAN, the paper's min-max leader target", "find_water/minmax"),
     ("QMIX", "baselines/find_water_qmix"),
     ("VDN", "baselines/find_water_vdn"),
     ("IQL (the paper's DQN)", "baselines/find_water_iql"),
