@@ -10,8 +10,8 @@ import hashlib
 import json
 
 import pytest
-
 from decision_streams import DEFAULT_MODEL, DEFAULT_OUT, SCENARIOS, replay
+
 from udan.edge.decide import DecisionStep, task_of
 from udan.envs.arena import ArenaConfig
 from udan.export.runtime import OnnxPolicy
