@@ -9,7 +9,9 @@ STAMP := $(VENV)/.installed
 install: $(STAMP)
 
 # torch is pinned: 2.13.0 is a CPU build on these machines, an unpinned torch pulls CUDA.
-$(STAMP): pyproject.toml
+# The install compiles udan._kernels (setup.py, udan/_kernels.c), so it needs a C compiler.
+$(STAMP): pyproject.toml setup.py udan/_kernels.c
+	@command -v cc >/dev/null || { echo "make install: udan._kernels needs a C compiler (apt-get install gcc)" >&2; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0

@@ -1,11 +1,10 @@
-"""Leaders, groups and bridge rounds (numpy; shared by training and the edge)."""
+"""Leaders, groups and bridge rounds (shared by training and the edge)."""
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from udan.envs import grouping
 from udan.envs.grouping import (
     communication_matrix,
     form_groups,
@@ -14,6 +13,7 @@ from udan.envs.grouping import (
     nearest,
     neighbour_table,
     neighbour_tables,
+    round_order,
 )
 
 
@@ -86,20 +86,19 @@ def test_hypothetical_groups_and_the_communication_matrix():
 
 
 @pytest.mark.parametrize("distinct_cells", [True, False])
-def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells, monkeypatch):
-    """Distinct cells take the ring search, shared cells the all-pairs path: both must equal a
-    plain sort by (distance, slot)."""
-    monkeypatch.setattr(grouping, "RING_SEARCH_FROM", 0)  # small fleets take the ring path too
+def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells):
+    """Small and large fleets, agents on cells of their own or sharing cells, some absent:
+    always a plain sort by (distance, slot)."""
     rng = np.random.default_rng(0)
     for _ in range(150):
-        h, w = (int(v) for v in rng.integers(1, 9, size=2))
-        n = int(rng.integers(1, 30))
+        h, w = (int(v) for v in rng.integers(1, 12, size=2))
+        n = int(rng.integers(1, 30 if rng.random() < 0.8 else 140))
         if distinct_cells:
             n = min(n, h * w)
             cells = rng.choice(h * w, size=n, replace=False)
         else:
             cells = rng.integers(0, h * w, size=n)
-        pos = np.stack([cells // w, cells % w], -1)
+        pos = np.stack([cells // w, cells % w], -1) + rng.integers(-50, 50, size=2)
         present = rng.random(n) < (0.8 if rng.random() < 0.7 else 1.0)  # or all of them
         count = int(rng.integers(1, 10))
         got = nearest(pos, present, count)
@@ -135,13 +134,13 @@ def test_groups_from_a_precomputed_neighbour_table_equal_a_fresh_search():
 
 @pytest.mark.parametrize("agents", [7, 70])
 def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
-    """Training's batched tables: small fleets by one sort of all pairs, large ones by rings,
-    shared cells and absent agents included; -1 columns beyond the agents present."""
+    """Training's batched tables: shared cells and absent agents included; -1 columns beyond
+    the agents present."""
     rng = np.random.default_rng(agents)
     for _ in range(50):
         m, count = int(rng.integers(0, 6)), int(rng.integers(1, 10))
         side = 20 if agents > 64 else int(rng.integers(3, 9))
-        if rng.random() < 0.5:  # distinct cells (rings for large fleets), else shared ones
+        if rng.random() < 0.5:  # distinct cells, else shared ones
             flat = np.argsort(rng.random((m, side * side)), axis=1)[:, :agents]
         else:
             flat = rng.integers(0, side * side, (m, agents))
@@ -153,15 +152,27 @@ def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
             assert (got[i] == neighbour_table(pos[i], present[i], count)).all()
 
 
-def test_many_groups_get_the_same_rounds_as_the_loop(monkeypatch):
+def test_agents_too_far_apart_for_the_grid_are_refused():
+    with pytest.raises(ValueError, match="16384 cells apart"):
+        nearest(np.array([[0, 0], [0, 20000]]), np.ones(2, bool), 2)
+
+
+def test_many_groups_get_the_rounds_of_the_rule():
+    """Thousands of groups with long chains of shared members: each group one round after the
+    last round holding any of its members (the rule, written as a plain loop)."""
     rng = np.random.default_rng(5)
-    cases = []
     for _ in range(200):
-        agents, size = int(rng.integers(3, 300)), int(rng.integers(2, 4))
-        count = int(rng.integers(grouping.VECTOR_ROUNDS_FROM, 200))
-        cases.append(np.stack([rng.choice(agents, size, replace=False) for _ in range(count)]))
-    fast = [grouping.group_rounds(groups) for groups in cases]
-    monkeypatch.setattr(grouping, "VECTOR_ROUNDS_FROM", 10**9)  # the loop for every size
-    for groups, got in zip(cases, fast, strict=True):
-        want = grouping.group_rounds(groups)
-        assert [r.tolist() for r in got] == [r.tolist() for r in want]
+        agents, size = int(rng.integers(3, 300)), int(rng.integers(1, 4))
+        count = int(rng.integers(0, 2000))
+        groups = np.stack([rng.choice(agents, size, replace=False) for _ in range(count)])
+        groups = groups.reshape(count, size)
+        last, rounds = {}, []
+        for g, members in enumerate(groups.tolist()):
+            r = max((last.get(m, -1) for m in members), default=-1) + 1
+            rounds.extend([] for _ in range(r + 1 - len(rounds)))
+            rounds[r].append(g)
+            last.update(dict.fromkeys(members, r))
+        assert [r.tolist() for r in group_rounds(groups)] == rounds
+        order, sizes = round_order(groups)
+        assert order.tolist() == [g for r in rounds for g in r]
+        assert sizes.tolist() == list(map(len, rounds))

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from udan import _kernels
 from udan.envs.errors import EnvConfigError, parse_range
 from udan.envs.observe import (
     AGENT_BIT,
@@ -197,17 +198,23 @@ def task_rewards(
     """Per-agent rewards (B, N) of one step that has just ended (``t`` counts it).
 
     find_water: 1 on a cell in front of a source. surround: 1 next to the target, else -1 every
-    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world.
+    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world; one
+    loop in C (``udan._kernels.task_rewards``).
     """
-    if task == "find_water":
-        front = pos[..., 0] == 1
-        source = layout[np.arange(len(layout))[:, None], 0, pos[..., 1]] == WATER
-        reward = (front & source).astype(np.float32)
-    else:
-        adjacent = np.abs(pos - target[:, None]).sum(-1) == 1
-        penalty = (np.asarray(t) % 4 == 0)[:, None] & ~adjacent
-        reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
-    return np.where(present, reward, 0.0).astype(np.float32)
+    present = np.ascontiguousarray(present, bool)
+    out = np.empty(present.shape, np.float32)
+    find_water = task == "find_water"
+    _kernels.task_rewards(
+        find_water,
+        np.ascontiguousarray(layout, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        present,
+        np.zeros((0, 2), np.int64) if find_water else np.ascontiguousarray(target, np.int64),
+        np.ascontiguousarray(np.broadcast_to(t, present.shape[:1]), np.int64),
+        WATER,
+        out,
+    )
+    return out
 
 
 class ArenaBatch:
