@@ -95,7 +95,7 @@ class DecisionStep:
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
         self._last: tuple | None = None  # the last step's inputs, for rehearse
-        self._owned_key: dict[int, int] | None = None  # the slots last credited: cars own them
+        self._owned_key: dict[int, int] | None = None  # _fleet_key last credited: cars own them
 
     @property
     def returns(self) -> dict[int, float]:
@@ -128,8 +128,9 @@ class DecisionStep:
         if not slots:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
-        steady = not fresh and slots == self._owned_key  # every car owns its slot already
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
+        # the slots last credited, kept since (no fresh car): every car owns its slot already
+        steady = not fresh and self._owned_key is self._fleet_key
         fresh_mask = np.zeros(len(self.owner), bool)
         if fresh:
             fresh_mask[[slots[c] for c in fresh if c in slots]] = True

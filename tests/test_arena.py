@@ -7,7 +7,8 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import udan.envs as envs
-from udan.envs.arena import ArenaBatch, ArenaConfig, task_rewards
+from udan.envs.arena import ArenaBatch, ArenaConfig, scene_codes, task_rewards
+from udan.envs.observe import AGENT_BIT, OBJECTIVE_BIT
 from udan.envs.rules import FREE, OBSTACLE, WAIT, WATER
 
 
@@ -99,6 +100,35 @@ def test_rewards_are_bit_for_bit_those_of_the_previous_array_code(task):
         present, t = rng.random((batch, n)) < 0.8, rng.integers(0, 50, batch)
         want = _previous_task_rewards(task, layout, pos, present, target, t)
         assert task_rewards(task, layout, pos, present, target, t).tobytes() == want.tobytes()
+
+
+def _previous_scene_codes(padded_layout, pos, present, view, target=None):
+    """scene_codes as numpy arrays, before its loop moved to udan._kernels (commit b68a9ec)."""
+    codes = padded_layout.copy()
+    batch, hp, wp = codes.shape
+    flat = codes.reshape(-1)
+    origin = view * wp + view
+    arenas = np.arange(batch)[:, None] * (hp * wp) + origin if batch > 1 else origin
+    flat[(pos[..., 0] * wp + pos[..., 1] + arenas)[present]] |= AGENT_BIT
+    if target is not None:
+        flat[target[:, 0] * wp + target[:, 1] + np.ravel(arenas)] |= OBJECTIVE_BIT
+    return codes
+
+
+def test_scene_codes_are_those_of_the_previous_array_code():
+    """Agents anywhere on the arena (several on one cell too), absent ones, a target or none,
+    and the edge's (-1, -1) for a target not seen: the same bytes."""
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        batch, n, height, width = (int(v) for v in rng.integers(1, 9, 4))
+        view = int(rng.integers(1, 4))
+        padded = rng.integers(0, 8, (batch, height + 2 * view, width + 2 * view)).astype(np.uint8)
+        rows, cols = rng.integers(0, height, (batch, n)), rng.integers(0, width, (batch, n))
+        pos, present = np.stack([rows, cols], -1), rng.random((batch, n)) < 0.7
+        target = np.stack([rng.integers(-1, height, batch), rng.integers(-1, width, batch)], -1)
+        for seen in (None, target):
+            want = _previous_scene_codes(padded, pos, present, view, seen)
+            assert scene_codes(padded, pos, present, view, seen).tobytes() == want.tobytes()
 
 
 def test_surround_target_flees_and_a_follower_stays_adjacent():

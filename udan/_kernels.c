@@ -542,6 +542,59 @@ done:
 
 /* ---------------------------------------------------------------- observations */
 
+static PyObject *scene_codes(PyObject *self, PyObject *args) {
+    PyObject *layout_o, *pos_o, *present_o, *target_o, *out_o;
+    Py_ssize_t view;
+    long long agent_bit, target_bit;
+    if (!PyArg_ParseTuple(args, "OOOOnLLO:scene_codes", &layout_o, &pos_o, &present_o,
+                          &target_o, &view, &agent_bit, &target_bit, &out_o))
+        return NULL;
+    Array a[5];
+    memset(a, 0, sizeof a);
+    PyObject *result = NULL;
+    if (take(layout_o, &a[0], "padded_layout", U8, 3, 0) || take(pos_o, &a[1], "pos", I64, 3, 0) ||
+        take(present_o, &a[2], "present", BOOL, 2, 0) ||
+        take(target_o, &a[3], "target", I64, 2, 0) || take(out_o, &a[4], "out", U8, 3, 1))
+        goto done;
+    Py_ssize_t batch = SHAPE(a[2], 0), n = SHAPE(a[2], 1), hp = SHAPE(a[0], 1), wp = SHAPE(a[0], 2);
+    Py_ssize_t targets = SHAPE(a[3], 0);
+    if (!same_shape(&a[1], &a[2], 2, "scene_codes pos/present") ||
+        !same_shape(&a[4], &a[0], 3, "scene_codes out/padded_layout") ||
+        !same_shape(&a[0], &a[2], 1, "scene_codes padded_layout/present") ||
+        SHAPE(a[1], 2) != 2 || SHAPE(a[3], 1) != 2 || (targets && targets != batch) ||
+        view < 0 || 2 * view >= hp || 2 * view >= wp) {
+        PyErr_SetString(PyExc_ValueError, "scene_codes: shapes do not match");
+        goto done;
+    }
+    const int64_t *pos = a[1].view.buf, *target = a[3].view.buf;
+    const char *present = a[2].view.buf;
+    uint8_t *out = a[4].view.buf;
+    Py_ssize_t plane = hp * wp;
+    memcpy(out, a[0].view.buf, (size_t)(batch * plane));
+    for (Py_ssize_t i = 0; i < batch * n; i++) {
+        if (!present[i]) continue;
+        int64_t r = pos[2 * i], c = pos[2 * i + 1];
+        if (r < 0 || c < 0 || r >= hp - 2 * view || c >= wp - 2 * view) {
+            PyErr_Format(PyExc_IndexError, "scene_codes: agent %zd at (%lld, %lld) is off the "
+                         "arena", i % n, (long long)r, (long long)c);
+            goto done;
+        }
+        out[(i / n) * plane + (r + view) * wp + c + view] |= (uint8_t)agent_bit;
+    }
+    for (Py_ssize_t b = 0; b < targets; b++) {  /* (-1, -1), no target seen, is a border cell */
+        int64_t r = target[2 * b] + view, c = target[2 * b + 1] + view;
+        if (r < 0 || c < 0 || r >= hp || c >= wp) {
+            PyErr_SetString(PyExc_IndexError, "scene_codes: a target past the padded codes");
+            goto done;
+        }
+        out[b * plane + r * wp + c] |= (uint8_t)target_bit;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    release(a, 5);
+    return result;
+}
+
 static PyObject *observe(PyObject *self, PyObject *args) {
     PyObject *codes_o, *pos_o, *action_o, *reward_o, *present_o, *bits_o, *out_o;
     Py_ssize_t view, own_bit, row_scale, col_scale;
@@ -689,6 +742,9 @@ static PyMethodDef methods[] = {
      "pairs; see udan.edge.decide."},
     {"task_rewards", task_rewards, METH_VARARGS,
      "task_rewards(find_water, layout, pos, present, target, t, water, out): see "
+     "udan.envs.arena."},
+    {"scene_codes", scene_codes, METH_VARARGS,
+     "scene_codes(padded_layout, pos, present, target, view, agent_bit, target_bit, out): see "
      "udan.envs.arena."},
     {"observe", observe, METH_VARARGS,
      "observe(codes, pos, last_action, last_reward, present, bits, view, own_bit, row_scale, "
