@@ -33,6 +33,19 @@ def test_leaders_ordered_by_probability_and_absent_agents_ignored():
     assert groups.tolist() == [[2, 1], [4, 2], [0, 1]]
 
 
+def test_a_leader_is_above_the_threshold_in_the_probabilities_own_type():
+    """Exactly at the threshold is not above it, and float32 probabilities meet the threshold as
+    a float32, as numpy compares them (float32(0.3) is not above 0.3 rounded to float32, though
+    it is above the float64 0.3); equal probabilities lead in slot order."""
+    pos = np.array([[0, 0], [0, 1], [0, 2], [5, 5]])
+    present = np.ones(4, bool)
+    prob = np.array([0.5, 0.7, 0.5000001, 0.7], np.float32)
+    assert form_groups(pos, present, prob, 2, 0.5).tolist() == [[1, 0], [3, 2], [2, 1]]
+    thirty = np.full(4, 0.3, np.float32)
+    assert len(form_groups(pos, present, thirty, 2, 0.3)) == 0
+    assert len(form_groups(pos, present, thirty.astype(np.float64), 2, 0.3)) == 4
+
+
 def test_no_leader_or_too_few_agents_means_no_groups():
     pos = np.array([[0, 0], [1, 1]])
     assert form_groups(pos, np.ones(2, bool), np.array([0.1, 0.2]), 3, 0.5).shape == (0, 2)
