@@ -82,8 +82,8 @@ class PolicyGraph:
 
 
 class BoundGraph:
-    """The graph bound to buffers of N slots, as a running edge calls it: a step copies its
-    observations into a bound buffer and runs.
+    """The graph bound to buffers of N slots, as a running edge calls it: a step's observations
+    are in a bound buffer (:attr:`obs`: written there in place, or copied in) and it runs.
 
     Binding inputs anew costs onnxruntime about as much as a layer of these networks, so
     nothing is rebound between group formations: two bindings take turns, each reading the

@@ -165,9 +165,11 @@ def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
             assert (got[i] == neighbour_table(pos[i], present[i], count)).all()
 
 
-def test_agents_too_far_apart_for_the_grid_are_refused():
-    with pytest.raises(ValueError, match="16384 cells apart"):
-        nearest(np.array([[0, 0], [0, 20000]]), np.ones(2, bool), 2)
+def test_agents_spread_wider_than_the_search_grid_and_bad_members_are_refused():
+    with pytest.raises(ValueError, match="span more than 2"):
+        nearest(np.array([[0, 0], [3000, 3000]]), np.ones(2, bool), 2)
+    with pytest.raises(ValueError, match="members are slots"):
+        group_rounds(np.array([[0, -1]]))
 
 
 def test_many_groups_get_the_rounds_of_the_rule():

@@ -7,11 +7,12 @@
  * fixed points) that numpy can only express as many passes. One C loop does each in one pass.
  *
  * Each function is the one implementation its Python caller documents (udan/envs/grouping.py,
- * udan/envs/rules.py, udan/envs/observe.py): those callers check and convert the arguments,
- * allocate the outputs and own the documentation; this file checks only what it must not get
- * wrong (buffer types, shapes and indices), so that no argument can make it read or write out
- * of bounds. Arrays arrive through the buffer protocol, C-contiguous. Scratch memory is kept
- * between calls (the interpreter lock is held throughout), so a step allocates nothing.
+ * rules.py, observe.py and arena.py; the edge's safety filter and fleet cells in edge/safety.py
+ * and edge/decide.py): those callers check and convert the arguments, allocate the outputs and
+ * own the documentation; this file checks only what it must not get wrong (buffer types,
+ * shapes and indices), so that no argument can make it read or write out of bounds. Arrays
+ * arrive through the buffer protocol, C-contiguous. Scratch memory is kept between calls (the
+ * interpreter lock is held throughout), so a step allocates nothing.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -125,8 +126,9 @@ static int nearest_one(const int64_t *pos, const char *present, Py_ssize_t n, Py
         col_hi = c > col_hi ? c : col_hi;
     }
     if (row_lo > row_hi || count == 0) return 0;
-    if (row_hi - row_lo >= (1 << 14) || col_hi - col_lo >= (1 << 14)) {
-        PyErr_SetString(PyExc_ValueError, "nearest: agents more than 16384 cells apart");
+    if (row_hi - row_lo >= (1 << 22) || col_hi - col_lo >= (1 << 22) ||
+        (row_hi - row_lo + 1) * (col_hi - col_lo + 1) > (1 << 22)) {
+        PyErr_SetString(PyExc_ValueError, "nearest: the agents span more than 2^22 cells");
         return -1;
     }
     Py_ssize_t rows = (Py_ssize_t)(row_hi - row_lo + 1), cols = (Py_ssize_t)(col_hi - col_lo + 1);
@@ -274,8 +276,8 @@ static PyObject *round_order(PyObject *self, PyObject *args) {
     int64_t *order = a[1].view.buf, *sizes = a[2].view.buf;
     int64_t top = -1;
     for (Py_ssize_t i = 0; i < n_groups * width; i++) {
-        if (groups[i] < 0 || groups[i] >= (1 << 30)) {
-            PyErr_SetString(PyExc_ValueError, "round_order: members are slots >= 0");
+        if (groups[i] < 0 || groups[i] >= (1 << 24)) {
+            PyErr_SetString(PyExc_ValueError, "round_order: members are slots 0 to 2^24 - 1");
             goto done;
         }
         top = groups[i] > top ? groups[i] : top;
