@@ -14,7 +14,8 @@ commit's tree (``git archive``), so what is recorded is the old code's behaviour
 checkout holds. Each scenario is an arena episode stepped with the decided commands: fleets
 of 1 to 1,000 cars, cars joining and leaving mid-episode (churn: fresh cars, reused slots),
 groups bridged by shared members, cars seen off the cell they were sent to, cars still in a
-move, markers of things the edge does not drive, and rehearsals between steps.
+move (or halted in one by the guard), markers of things the edge does not drive, and
+rehearsals between steps.
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "tests" / "data" / "decision_streams.json.gz"
 DEFAULT_MODEL = ROOT / "models" / "find_water" / "policy.onnx"
-#: The implementation the streams are recorded with: the decision step before issue 25.
-PREVIOUS = "b68a9ec4d29a8fecd7b871b14d5d46e724f19ee3"
+#: The implementation the streams are recorded with: main's decision step before issue 25's
+#: loops in C (with the moving cars' targets and the guard's stops of issue 29).
+PREVIOUS = "23399b055f7723eb2990ce6a406a240df8de120d"
 #: What the recording imports, by path in the source tree -> path in the ``udan`` namespace.
 PACKAGES = {
     "udan": "udan",
@@ -91,6 +93,7 @@ def _outputs(step, decision) -> dict:
         "blocked": decision.blocked,
         "stopped": decision.stopped,
         "formed": decision.formed,
+        "targets": decision.targets.tolist(),
         "groups": policy.groups.tolist() if decision.formed else None,
         "obs": digest(policy._steps.obs),
     }
@@ -119,6 +122,7 @@ def record(scenario: Scenario, model: Path) -> list[dict]:
 
     from udan.edge.decide import DecisionStep
     from udan.edge.fleet import FleetState
+    from udan.edge.safety import STOP
     from udan.envs.arena import ArenaBatch, ArenaConfig
     from udan.envs.rules import OBSTACLE, WALL, WATER
     from udan.export.runtime import OnnxPolicy
@@ -169,8 +173,8 @@ def record(scenario: Scenario, model: Path) -> list[dict]:
             moving = {}
             if rng.random() < rough:  # the step period ran out: some cars still move
                 movers = sorted(set(moves) & set(slots))
-                for car in movers[: max(1, len(movers) // 8)]:
-                    moving[car] = moves[car]
+                for car in movers[: max(1, len(movers) // 8)]:  # some halted by the guard
+                    moving[car] = STOP if rng.random() < 0.25 else moves[car]
             event = {
                 "slots": [[car, slot] for car, slot in slots.items()],
                 "fresh": sorted(set(slots) - last_cars),
