@@ -12,6 +12,7 @@ what the car keeps of those frames is the highest seq, and that is what it ends 
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 import os
@@ -287,6 +288,78 @@ async def test_recorded_frames_of_every_earlier_session_replayed_change_nothing(
         assert link.counters()["rejected"]["unsolicited"] > 0  # replayed HELLOs went nowhere
     finally:
         await f.close()
+
+
+def secret_forms(secret: bytes) -> dict[str, str]:
+    """The ways a secret could show in a text: hex either case, base64, Python's bytes repr."""
+    return {
+        "hex": secret.hex(),
+        "HEX": secret.hex().upper(),
+        "base64": base64.b64encode(secret).decode(),
+        "base64url": base64.urlsafe_b64encode(secret).decode().rstrip("="),
+        "bytes repr": repr(secret)[2:-1],
+    }
+
+
+def session_secrets(f: LoopFleet, rec: Recorder) -> tuple[set[bytes], set[bytes]]:
+    """The nonces of every ACCEPT on the wire, and the session keys they opened (derived from
+    the car's key as both ends derive it)."""
+    keys = {e.car_id: e.key for e in f.entries}
+    nonces, session_keys = set(), set()
+    for car_id, frame in rec.to_cars:
+        if frame[1] == ep.MsgType.ACCEPT:
+            fields = ep.decode(frame).fields
+            car_nonce, edge_nonce = bytes(fields["car_nonce"]), bytes(fields["edge_nonce"])
+            nonces |= {car_nonce, edge_nonce}
+            session_keys.add(ep.derive_session(keys[car_id], car_nonce, edge_nonce)[1])
+    return nonces, session_keys
+
+
+async def test_no_key_nonce_or_session_key_in_any_log_or_count(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Everything either side logs or counts through a fleet's life — sessions opened, a car
+    rebooted, the edge restarted, every frame replayed, frames forged and of another version —
+    holds no car key, no session nonce and no session key, in any spelling."""
+    caplog.set_level(logging.DEBUG)
+    f = LoopFleet(2, time.monotonic_ns)
+    rec = Recorder(f)
+    await f.start()
+    links = [f.link]
+    try:
+        await drive(f, f.link, 3)
+        f.cars[1].firmware.reboot()
+        await until(f.link, lambda: f.link.counters()["reboots"] == 1)
+        await drive(f, f.link, 2)
+        await f.link.close()
+        f.link = CarLink(f.entries, f.transport)
+        links.append(f.link)
+        await f.link.start()
+        await drive(f, f.link, 2)
+        rec.take_edge_frames()
+        await replay_everything(f, rec)
+        for car_id, frame in list(rec.to_cars)[:8]:
+            f.cars[car_id].receive(frame[:-1] + bytes([frame[-1] ^ 1]))  # a forged tag
+            f.cars[car_id].receive(bytes([1]) + frame[1:])  # a v1 frame
+        for frame in list(rec.to_edge)[:8]:
+            f.transport.car_send(frame[:-1] + bytes([frame[-1] ^ 1]))
+            f.transport.car_send(bytes([3]) + frame[1:])  # a frame of a version to come
+        await asyncio.sleep(0.15)
+        outputs = {
+            "logs": caplog.text,
+            "edge counts": json.dumps([link.counters() for link in links], default=repr),
+            "car counts": repr({c: car.counters for c, car in f.cars.items()}),
+        }
+    finally:
+        await f.close()
+    nonces, session_keys = session_secrets(f, rec)
+    assert len(session_keys) >= 5 and len(nonces) >= 10  # two cars, three edges' sessions
+    assert "refused" in caplog.text  # the refusals were logged: there was something to search
+    car_keys = {e.key for e in f.entries}
+    for name, text in outputs.items():
+        for secret in car_keys | nonces | session_keys:
+            shown = [kind for kind, form in secret_forms(secret).items() if form in text]
+            assert not shown, f"{name} shows a secret spelt as {shown[0]}"
 
 
 async def test_a_fresh_edge_fed_old_joins_first_still_gets_every_car() -> None:
