@@ -50,18 +50,29 @@ def import_ray():
 
 
 def check_address(address: str, timeout: float) -> None:
-    """Refuse, within ``timeout`` seconds, an ``--address`` that is malformed or where nothing
-    answers: Ray itself would retry a dead address for minutes."""
+    """Refuse, within ``timeout`` seconds, an ``--address`` that is malformed, where nothing
+    answers, or where what answers does not speak gRPC (Ray's GCS and client server do): Ray
+    itself would retry such an address for minutes."""
     if address == "auto":
         return
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
         raise ScaleError(f"--address {address!r}: expected ray://HOST:PORT, HOST:PORT or auto")
+    started = time.monotonic()
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as err:
         reason = err.strerror or type(err).__name__
         raise ScaleError(f"--address {address}: no Ray cluster answers there ({reason})") from None
+    import grpc
+
+    with grpc.insecure_channel(f"{host}:{port}") as channel:
+        try:
+            grpc.channel_ready_future(channel).result(timeout - (time.monotonic() - started))
+        except grpc.FutureTimeoutError:
+            raise ScaleError(
+                f"--address {address}: what answers there is not a Ray cluster (no gRPC)"
+            ) from None
 
 
 class _SilenceThreadNotice(logging.Filter):

@@ -320,19 +320,22 @@ def train_with_workers(cfg: TrainConfig, resume: bool = False, log: Callable = p
 class Learner:
     """The learner's side of the exchange: its networks, replay and run folder, and a ledger
     of the workers: ``started`` (how many; serials go on from there on resume), ``rollouts``
-    (counted from each serial), ``lost`` workers and ``refused`` rollouts (already counted)."""
+    (counted from each serial), ``lost`` workers and ``refused`` rollouts (already counted),
+    and the learner's own seconds ``learning`` (updates) and ``waiting`` (for a rollout): where
+    the learner is busy nearly all the time, it, not the workers, sets the pace."""
 
     def __init__(self, run: Run, model: MultiAgentQ, replay: EpisodeReplay) -> None:
         self.run, self.model, self.replay = run, model, replay
         self.target = copy.deepcopy(model)
         self.optim = torch.optim.Adam(model.parameters(), lr=run.cfg.lr)
         self.ledger = {"started": 0, "rollouts": {}, "lost": 0, "refused": 0}
+        self.ledger |= {"learning": 0.0, "waiting": 0.0}
         if run.checkpoint is not None:
             model.load_state_dict(run.checkpoint["weights"])
             self.target.load_state_dict(run.checkpoint["target_weights"])
             self.optim.load_state_dict(run.checkpoint["optimizer"])
             replay.load(run.out / "replay.npz")
-            self.ledger = run.checkpoint.get("workers") or self.ledger
+            self.ledger |= run.checkpoint.get("workers") or {}
         self.rates: dict[str, float] = {}  # each slot's last rollout throughput, for the log
         self.requested = run.progress["steps"]  # steps of the rollouts counted or asked for
         self.shared: Any = None
@@ -348,7 +351,9 @@ class Learner:
         losses_in_a_row = 0
         with StopRequest() as stop:
             while run.running and not stop.requested:
+                waited = time.perf_counter()
                 got = pool.next(timeout=0.5)
+                self.ledger["waiting"] += time.perf_counter() - waited
                 if got is None:
                     continue
                 slot, result = got
@@ -400,9 +405,11 @@ class Learner:
             return False
         self.ledger["rollouts"][key] = rollout.index + 1
         self.replay.add(rollout.episodes)
+        started = time.perf_counter()
         losses = update_round(
             self.model, self.target, self.optim, self.replay, self.run, interrupted
         )
+        self.ledger["learning"] += time.perf_counter() - started
         self.rates[f"w{slot}"] = rollout.steps / max(rollout.seconds, 1e-9)
         return self.run.record(rollout.epsilon, losses, rollout.returns, rollout.steps, self.rates)
 

@@ -1,0 +1,210 @@
+"""Scale-out: environment steps per second of ``udan-train --workers 2`` against one process.
+
+**Rollouts** (the target: ≥ 1.6 on a 2-core machine). ``magent/pursuit`` with 16 agents, 16
+episodes of 300 steps per rollout, a fresh UDAN network acting (epsilon 0.05). Blocks alternate
+in one run, A B A B ...:
+
+* A, one process: the workers' own code (:class:`udan.distributed.RolloutWorker`) here, each
+  rollout added to a replay, as ``udan-train`` does between its updates;
+* B, ``--workers 2``: two Ray workers play at once (:class:`udan.distributed.RayPool`); this
+  process adds each rollout to a replay and asks that worker again at once, as the learner does.
+
+Each block counts ``--rollouts`` rollouts per worker after one warm-up rollout each; B's clock
+stops when its last counted rollout arrives (those still in flight finish, uncounted, before the
+next A). The ratio B/A of the blocks' steps per second comes with its 95 % interval
+(``bench/tools/compare.py``'s: Welch t on the logs).
+
+**Training** (reported, no target). ``udan.train.train`` itself, one process and
+``--workers 2`` alternately, ``--train-steps`` steps each: wall time (Ray's start included), the
+run's own clock, and the learner's busy share (updates over the run's time, from the workers'
+ledger in the checkpoint). Where that share is near 1, the learner sets the pace and more
+workers cannot shorten the run. Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from udan.checkpoint import load_checkpoint
+from udan.distributed import RayPool, RolloutWorker, WorkerLost
+from udan.train import EpisodeReplay, TrainConfig, build, train
+
+TARGET = 1.6
+EPSILON = 0.05
+#: The learner is said to set the pace when its updates take more than this share of the run.
+LEARNER_BOUND = 0.8
+
+_tools = Path(__file__).resolve().parent / "tools" / "compare.py"
+_spec = importlib.util.spec_from_file_location("compare", _tools)
+compare = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(compare)
+
+
+def one_process(worker: RolloutWorker, replay: EpisodeReplay, weights: dict, count: int) -> float:
+    """Steps per second of ``count`` rollouts played here."""
+    started, steps = time.perf_counter(), 0
+    for _ in range(count):
+        played = worker.play(weights, EPSILON)
+        replay.add(played.episodes)
+        steps += played.steps
+    return steps / (time.perf_counter() - started)
+
+
+def two_workers(pool: RayPool, replay: EpisodeReplay, shared, count: int) -> tuple[float, list]:
+    """Steps per second of ``count`` rollouts per worker from the pool's workers, and each
+    counted rollout's own rate (its worker's steps per second)."""
+    slots = len(pool.serials)
+    started, steps, rates = time.perf_counter(), 0, []
+    for slot in range(slots):
+        pool.submit(slot, shared, EPSILON)
+    while len(rates) < count * slots:
+        got = pool.next(timeout=600)
+        if got is None or isinstance(got[1], WorkerLost):
+            raise RuntimeError(f"a worker gave no rollout: {got}")
+        slot, played = got
+        pool.submit(slot, shared, EPSILON)  # busy to the end of the block
+        replay.add(played.episodes)
+        steps += played.steps
+        rates.append(played.steps / played.seconds)
+    rate = steps / (time.perf_counter() - started)
+    for _ in range(slots):  # the rollouts still in flight, uncounted
+        pool.next(timeout=600)
+    return rate, rates
+
+
+def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> dict:
+    env, model = build(dataclasses.replace(cfg, n_envs=1))
+    shape = (env.config.max_steps, env.slots, env.spec.size, cfg.group_size, 0)
+    replay = EpisodeReplay(4 * cfg.n_envs, *shape)
+    rollout_bytes = sum(a.nbytes for a in replay.data.values()) // 4
+    weights = model.state_dict()
+    here = RolloutWorker(cfg, model.spec, serial=2)
+    pool = RayPool(dataclasses.replace(cfg, workers=2), rollout_bytes)
+    try:
+        pool.start(model.spec, 2, first_serial=0)
+        shared = pool.share(weights)
+        one_process(here, replay, weights, 1)  # warm-up: first calls, allocations
+        two_workers(pool, replay, shared, 1)
+        a, b, per_worker = [], [], []
+        for _ in range(pairs):
+            a.append(one_process(here, replay, weights, count))
+            rate, rates = two_workers(pool, replay, shared, count)
+            b.append(rate)
+            per_worker += rates
+    finally:
+        pool.close()
+    ratio = compare.ratio_ci(a, b)
+    return {
+        "one_process_steps_per_s": [round(x) for x in a],
+        "workers_2_steps_per_s": [round(x) for x in b],
+        "per_worker_steps_per_s": round(sum(per_worker) / len(per_worker)),
+        "ratio": ratio["ratio"],
+        "ratio_ci95": ratio["ci95"],
+        "target": TARGET,
+        "verdict": "PASS" if ratio["ratio"] >= TARGET else "FAIL",
+    }
+
+
+def training_blocks(cfg: TrainConfig, steps: int, pairs: int) -> dict:
+    runs: dict[int, list[dict]] = {0: [], 2: []}
+    for _ in range(pairs):
+        for workers in runs:
+            with tempfile.TemporaryDirectory(prefix="scale-out-") as folder:
+                run_cfg = dataclasses.replace(
+                    cfg, steps=steps, workers=workers, out=f"{folder}/run", checkpoint_every=1e12
+                )
+                started = time.perf_counter()
+                ckpt = load_checkpoint(train(run_cfg, log=_quiet))
+                wall = time.perf_counter() - started
+            ledger = ckpt.get("workers") or {}
+            seconds = ckpt["progress"]["seconds"]
+            runs[workers].append(
+                {
+                    "wall_s": round(wall, 1),
+                    "run_s": round(seconds, 1),
+                    "updates": ckpt["progress"]["updates"],
+                    "learner_busy_share": round(ledger["learning"] / seconds, 3)
+                    if ledger
+                    else None,
+                }
+            )
+    wall = compare.ratio_ci([r["wall_s"] for r in runs[2]], [r["wall_s"] for r in runs[0]])
+    run = compare.ratio_ci([r["run_s"] for r in runs[2]], [r["run_s"] for r in runs[0]])
+    busy = min(r["learner_busy_share"] for r in runs[2])
+    return {
+        "steps": steps,
+        "one_process": runs[0],
+        "workers_2": runs[2],
+        "speed_up_wall": wall["ratio"],
+        "speed_up_wall_ci95": wall["ci95"],
+        "speed_up_run": run["ratio"],
+        "speed_up_run_ci95": run["ci95"],
+        "learner_bound": busy > LEARNER_BOUND,
+        "verdict": "reported (no target): "
+        + (
+            f"the learner sets the pace (busy {busy:.0%} of the run)"
+            if busy > LEARNER_BOUND
+            else f"the rollouts set the pace (learner busy {busy:.0%})"
+        ),
+    }
+
+
+def _quiet(*args: object, **kwargs: object) -> None:
+    pass
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="magent/pursuit")
+    parser.add_argument("--agents", default="16")
+    parser.add_argument("--n-envs", type=int, default=16, help="episodes per rollout")
+    parser.add_argument("--max-steps", type=int, default=0, help="0: the task's own (300)")
+    parser.add_argument("--map-size", type=int, default=0, help="0: the task's own")
+    parser.add_argument("--pairs", type=int, default=5, help="A B pairs of rollout blocks")
+    parser.add_argument("--rollouts", type=int, default=2, help="rollouts per worker per block")
+    parser.add_argument(
+        "--train-steps", type=int, default=28_800, help="steps per training run (0: none)"
+    )
+    parser.add_argument("--train-pairs", type=int, default=2, help="A B pairs of trainings")
+    parser.add_argument("--buffer-episodes", type=int, default=64, help="the trainings' replay")
+    args = parser.parse_args()
+    cfg = TrainConfig(
+        env=args.env,
+        agents=args.agents,
+        obstacles="0",
+        n_envs=args.n_envs,
+        max_steps=args.max_steps,
+        map_size=args.map_size,
+        buffer_episodes=args.buffer_episodes,
+    )
+    load_before = os.getloadavg()[0]
+    result = {
+        "benchmark": "scale_out",
+        "conditions": {
+            "env": cfg.env,
+            "agents": cfg.agents,
+            "episodes_per_rollout": cfg.n_envs,
+            "episode_steps": build(dataclasses.replace(cfg, n_envs=1))[0].config.max_steps,
+            "cpus": os.cpu_count(),
+            "load_average_before": round(load_before, 2),
+        },
+        "rollouts": rollout_blocks(cfg, args.pairs, args.rollouts),
+    }
+    if args.train_steps:
+        result["training"] = training_blocks(cfg, args.train_steps, args.train_pairs)
+    result["conditions"]["load_average_after"] = round(os.getloadavg()[0], 2)
+    json.dump(result, sys.stdout, indent=2)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,245 @@
+"""udan-train --workers: the rollout/learner exchange in this process (fast), and on a real local
+Ray (slow): learning, exact counts, resume, a worker killed mid-run, Ctrl-C, bad addresses, and
+the commands that stay Ray-free."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_train import TINY, one_line_exit_2, quiet, run_cli
+
+from udan.budget import planned_counts
+from udan.checkpoint import load_checkpoint, load_model
+from udan.distributed import RolloutWorker
+from udan.evaluate import CheckpointPolicy, evaluate
+from udan.train import EpisodeReplay, TrainConfig, build, train
+
+LOCAL = {"workers": 2, "address": "local"}
+
+
+def counted_once(ckpt: dict) -> None:
+    """Every episode the run counts came in exactly one rollout the ledger counted."""
+    ledger, cfg = ckpt["workers"], ckpt["config"]
+    assert sum(ledger["rollouts"].values()) * cfg["n_envs"] == ckpt["progress"]["episodes"]
+    assert ledger["refused"] == 0
+
+
+def test_the_exchange_in_process_learns_as_many_updates_as_one_process(tmp_path):
+    cfg = TrainConfig(steps=1600, out=str(tmp_path / "w"), checkpoint_every=800, **TINY, **LOCAL)
+    ckpt = load_checkpoint(train(cfg, log=quiet))
+    counts = planned_counts(cfg, 50)
+    assert ckpt["progress"]["episodes"] == counts["rollouts"] * cfg.n_envs
+    assert ckpt["progress"]["updates"] == counts["updates"] > 0
+    counted_once(ckpt)
+    assert ckpt["workers"]["started"] == 2 and set(ckpt["workers"]["rollouts"]) == {"0", "1"}
+    assert ckpt["workers"]["learning"] > 0 and ckpt["workers"]["lost"] == 0
+    _, fresh = build(cfg)
+    trained = ckpt["weights"]
+    assert any(not torch.equal(v, trained[k]) for k, v in fresh.state_dict().items())
+    model, _ = load_model(tmp_path / "w" / "checkpoint.pt")
+    cells = evaluate("arena/find_water", CheckpointPolicy(model), (1, 3), (0, 0), 2, seed=0)
+    assert len(cells) == 3
+    rows = (tmp_path / "w" / "progress.csv").read_text().splitlines()
+    assert len(rows) == 1 + counts["rollouts"] and rows[-1].startswith("1600,32,")
+
+
+def test_workers_have_seeds_of_their_own_and_act_with_the_weights_they_get():
+    cfg = TrainConfig(**TINY)
+    _, model = build(cfg)
+    weights = model.state_dict()
+    a, again, b = (RolloutWorker(cfg, model.spec, serial) for serial in (0, 0, 1))
+    first = a.play(weights, 0.0)
+    assert (first.worker, first.index) == (0, 0) and a.play(weights, 0.0).index == 1
+    same = again.play(weights, 0.0)
+    assert all(np.array_equal(first.episodes[k], same.episodes[k]) for k in first.episodes)
+    other = b.play(weights, 0.0)
+    assert not np.array_equal(first.episodes["pos"], other.episodes["pos"])
+    assert first.steps == cfg.n_envs * 50 and first.returns.shape == (cfg.n_envs,)
+    assert first.episodes["obs"].dtype == EpisodeReplay.DTYPES["obs"]
+    noise = torch.Generator().manual_seed(0)
+    changed = {k: v + torch.randn(v.shape, generator=noise) for k, v in weights.items()}
+    moved = RolloutWorker(cfg, model.spec, 0).play(changed, 0.0)
+    assert not np.array_equal(first.episodes["actions"], moved.episodes["actions"])
+
+
+def test_a_run_with_workers_resumes_with_new_serials_and_can_go_on_in_one_process(tmp_path):
+    cfg = TrainConfig(steps=800, out=str(tmp_path / "w"), **TINY, **LOCAL)
+    train(cfg, log=quiet)
+    resumed = load_checkpoint(train(dataclasses.replace(cfg, steps=1600), resume=True, log=quiet))
+    assert resumed["progress"]["steps"] == 1600
+    assert resumed["workers"]["started"] == 4 and set(resumed["workers"]["rollouts"]) == {
+        "0",
+        "1",
+        "2",
+        "3",
+    }
+    counted_once(resumed)
+    alone = dataclasses.replace(cfg, steps=2400, workers=0, address="")
+    assert load_checkpoint(train(alone, resume=True, log=quiet))["progress"]["steps"] == 2400
+
+
+def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(tmp_path):
+    cfg = TrainConfig(steps=3200, out=str(tmp_path / "w"), checkpoint_every=1e9, **TINY, **LOCAL)
+    calls = []
+
+    def ctrl_c_at_the_third_rollout(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt, match="checkpoint written at 600 steps"):
+        train(cfg, log=ctrl_c_at_the_third_rollout)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    ckpt = load_checkpoint(tmp_path / "w" / "checkpoint.pt")
+    assert ckpt["progress"]["steps"] == 600
+    counted_once(ckpt)
+    done = load_checkpoint(train(cfg, resume=True, log=quiet))
+    assert done["progress"]["steps"] == 3200
+
+
+def test_progress_csv_starts_afresh_and_drops_rows_a_resume_plays_again(tmp_path):
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "progress.csv").write_text("rows of a run that died before its first checkpoint\n")
+    cfg = TrainConfig(steps=800, out=str(out), **TINY)
+    train(cfg, log=quiet)
+    rows = (out / "progress.csv").read_text().splitlines()
+    assert rows[0].startswith("steps,") and len(rows) == 5
+    with (out / "progress.csv").open("a") as f:  # rows of a run killed past its checkpoint
+        f.write(rows[-1].replace("800,", "1000,", 1) + "\n")
+    train(dataclasses.replace(cfg, steps=1200), resume=True, log=quiet)
+    steps = [int(r.split(",")[0]) for r in (out / "progress.csv").read_text().splitlines()[1:]]
+    assert steps == list(range(200, 1400, 200)), steps
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--workers", "2", "--algo", "coma", "--agents", "3"], "coma learns on-policy"),
+        (["--workers", "2", "--address", "local", "--broadcast-every", "0"], "--broadcast-every"),
+        (["--workers", "2", "--address", "ray://nohost"], "expected ray://HOST:PORT"),
+        (["--workers", "2", "--address", "127.0.0.1:1"], "no Ray cluster answers there"),
+    ],
+)
+def test_bad_worker_input(args, fragment, tmp_path):
+    started = time.monotonic()
+    one_line_exit_2(run_cli("--steps", 100, "--out", tmp_path / "r", *args), fragment)
+    assert time.monotonic() - started < 10
+    assert not (tmp_path / "r" / "checkpoint.pt").exists()
+
+
+def test_a_silent_address_is_one_line_within_the_connection_deadline(tmp_path):
+    """Something listens there but never answers as Ray: Ray alone would wait for minutes."""
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        address = f"127.0.0.1:{silent.getsockname()[1]}"
+        started = time.monotonic()
+        proc = run_cli("--steps", 100, "--workers", 2, "--address", address, "--out", tmp_path)
+        took = time.monotonic() - started
+    one_line_exit_2(proc, "what answers there is not a Ray cluster")
+    assert took < 15, took  # 3 s of trying plus the start-up of a loaded machine
+
+
+RAY_FREE = """
+import sys
+from udan.train import main
+assert main(sys.argv[1:]) == 0
+import udan.edge.cli, udan.edge.decide, udan.evaluate
+assert "ray" not in sys.modules, "ray imported"
+print("ray-free")
+"""
+
+
+def test_one_process_training_and_the_edge_never_import_ray(tmp_path):
+    small = ["--steps", "200", "--n-envs", "4", "--batch-episodes", "4", "--hidden", "16"]
+    proc = subprocess.run(
+        [sys.executable, "-c", RAY_FREE, *small, "--out", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0 and "ray-free" in proc.stdout, proc.stderr
+
+
+# ------------------------------------------------------------------------- a real local Ray
+
+
+def ray_workers(root: int) -> list[int]:
+    """PIDs of the Ray rollout workers among the descendants of process ``root``."""
+    parent, command = {}, {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parent[int(entry.name)] = int(
+                    (entry / "stat").read_text().rsplit(")", 1)[1].split()[1]
+                )
+                command[int(entry.name)] = (entry / "cmdline").read_bytes()
+            except OSError:
+                continue
+    found, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        children = [c for c, p in parent.items() if p == pid]
+        todo += children
+        found += [c for c in children if b"RolloutWorker" in command[c]]
+    return found
+
+
+@pytest.mark.slow
+def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
+    cfg = TrainConfig(steps=2400, out=str(tmp_path / "w"), checkpoint_every=1200, workers=2, **TINY)
+    killed = []
+
+    def kill_a_worker_at_the_third_rollout(*args, **kwargs):
+        if len(killed) == 0 and args and "steps 600" in args[0]:
+            workers = ray_workers(os.getpid())
+            assert len(workers) == 2, workers
+            os.kill(workers[0], signal.SIGKILL)
+            killed.append(workers[0])
+        if args and "lost" in args[0]:
+            killed.append(args[0])
+
+    ckpt = load_checkpoint(train(cfg, log=kill_a_worker_at_the_third_rollout))
+    assert ckpt["progress"]["steps"] == 2400
+    assert ckpt["workers"]["lost"] == 1 and ckpt["workers"]["started"] == 3
+    assert "takes over" in killed[1]
+    counted_once(ckpt)
+    resumed = load_checkpoint(train(dataclasses.replace(cfg, steps=3200), resume=True, log=quiet))
+    assert resumed["progress"]["steps"] == 3200 and resumed["workers"]["started"] == 5
+    counted_once(resumed)
+    assert ray_workers(os.getpid()) == []
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_the_command_line_writes_a_checkpoint(tmp_path):
+    """SIGINT to the whole process group, as a terminal's Ctrl-C: Ray's processes get it too."""
+    out = tmp_path / "w"
+    cmd = [Path(sys.executable).parent / "udan-train", "--steps", 100_000, "--n-envs", 4,
+           "--batch-episodes", 4, "--hidden", 16, "--workers", 2, "--out", out]  # fmt: skip
+    proc = subprocess.Popen(
+        list(map(str, cmd)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline and not (out / "progress.csv").is_file():
+        time.sleep(0.5)
+    while time.monotonic() < deadline and len((out / "progress.csv").read_text().splitlines()) < 3:
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1].startswith("udan-train: interrupted; checkpoint written at")
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert ckpt["progress"]["steps"] >= 400
+    counted_once(ckpt)
