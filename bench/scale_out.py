@@ -14,6 +14,12 @@ stops when its last counted rollout arrives (those still in flight finish, uncou
 next A). The ratio B/A of the blocks' steps per second comes with its 95 % interval
 (``bench/tools/compare.py``'s: Welch t on the logs).
 
+**The learner's costs** (for docs/scaling.md): one update's seconds (median of three, on
+batches of the episodes the blocks played), adding one rollout to the replay, the bytes of a
+rollout and of the weights. **Projection**, on paper from these: the single learner's ceiling
+(it runs the updates one process would run for each rollout), how many workers reach it, and at
+8, 32 and 128 workers the steps per second and the data into and out of the learner.
+
 **Training** (reported, no target). ``udan.train.train`` itself, one process and
 ``--workers 2`` alternately, ``--train-steps`` steps each: wall time (Ray's start included), the
 run's own clock, and the learner's busy share (updates over the run's time, from the workers'
@@ -24,21 +30,30 @@ workers cannot shorten the run. Prints one JSON object.
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import importlib.util
 import json
 import os
+import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from udan.checkpoint import load_checkpoint
 from udan.distributed import RayPool, RolloutWorker, WorkerLost
-from udan.train import EpisodeReplay, TrainConfig, build, train
+from udan.train import EpisodeReplay, TrainConfig, build, train, update
 
 TARGET = 1.6
 EPSILON = 0.05
+#: Updates (and replay additions) timed for the learner's costs; their median is reported.
+TIMED = 3
+#: Worker counts of the projection.
+SCALES = (8, 32, 128)
 #: The learner is said to set the pace when its updates take more than this share of the run.
 LEARNER_BOUND = 0.8
 
@@ -80,11 +95,12 @@ def two_workers(pool: RayPool, replay: EpisodeReplay, shared, count: int) -> tup
     return rate, rates
 
 
-def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> dict:
+def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> tuple[dict, dict]:
+    """The rollout blocks' figures, and the learner's costs measured on what they played."""
     env, model = build(dataclasses.replace(cfg, n_envs=1))
     shape = (env.config.max_steps, env.slots, env.spec.size, cfg.group_size, 0)
-    replay = EpisodeReplay(4 * cfg.n_envs, *shape)
-    rollout_bytes = sum(a.nbytes for a in replay.data.values()) // 4
+    replay = EpisodeReplay(max(4 * cfg.n_envs, cfg.batch_episodes), *shape)
+    rollout_bytes = sum(a.nbytes for a in replay.data.values()) // replay.capacity * cfg.n_envs
     weights = model.state_dict()
     here = RolloutWorker(cfg, model.spec, serial=2)
     pool = RayPool(dataclasses.replace(cfg, workers=2), rollout_bytes)
@@ -102,14 +118,70 @@ def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> dict:
     finally:
         pool.close()
     ratio = compare.ratio_ci(a, b)
-    return {
+    rollouts = {
         "one_process_steps_per_s": [round(x) for x in a],
         "workers_2_steps_per_s": [round(x) for x in b],
-        "per_worker_steps_per_s": round(sum(per_worker) / len(per_worker)),
+        "per_worker_steps_per_s": round(statistics.median(per_worker)),
         "ratio": ratio["ratio"],
         "ratio_ci95": ratio["ci95"],
         "target": TARGET,
         "verdict": "PASS" if ratio["ratio"] >= TARGET else "FAIL",
+    }
+    return rollouts, learner_costs(cfg, model, replay, here, rollout_bytes)
+
+
+def learner_costs(cfg, model, replay, worker, rollout_bytes) -> dict:
+    """What one rollout costs the learner: adding it to the replay, and the updates it earns
+    (median of ``TIMED`` updates on batches of the episodes played); the bytes moved."""
+    played = worker.play(model.state_dict(), EPSILON)
+    adds = []
+    for _ in range(TIMED):
+        started = time.perf_counter()
+        replay.add(played.episodes)
+        adds.append(time.perf_counter() - started)
+    target, optim = copy.deepcopy(model), torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    rng = np.random.default_rng(0)
+    update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)  # warm-up
+    updates = []
+    for _ in range(TIMED):
+        batch = replay.sample(cfg.batch_episodes, rng)
+        started = time.perf_counter()
+        update(model, target, optim, batch, cfg)
+        updates.append(time.perf_counter() - started)
+    weights = sum(v.numel() * v.element_size() for v in model.state_dict().values())
+    return {
+        "update_s": round(statistics.median(updates), 4),
+        "updates_per_rollout": cfg.updates_per_rollout / cfg.update_every,
+        "add_rollout_s": round(statistics.median(adds), 4),
+        "rollout_steps": played.steps,
+        "rollout_mb": round(rollout_bytes / 1e6, 2),
+        "weights_mb": round(weights / 1e6, 3),
+    }
+
+
+def projection(rollouts: dict, learner: dict) -> dict:
+    """On paper, from the figures measured: the single learner's ceiling (it runs the updates
+    one process would run for every rollout), the workers that reach it, and at 8, 32 and 128
+    workers the throughput and what flows into and out of the learner."""
+    per_worker = rollouts["per_worker_steps_per_s"]
+    per_rollout = learner["updates_per_rollout"] * learner["update_s"] + learner["add_rollout_s"]
+    ceiling = learner["rollout_steps"] / per_rollout
+    mb_per_step = learner["rollout_mb"] / learner["rollout_steps"]
+    rows = {}
+    for workers in SCALES:
+        steps = min(workers * per_worker, ceiling)
+        rows[workers] = {
+            "steps_per_s": round(steps),
+            "learner_bound": workers * per_worker > ceiling,
+            "rollouts_in_mb_per_s": round(steps * mb_per_step, 1),
+            "weights_out_mb_per_s": round(
+                workers * learner["weights_mb"] * steps / learner["rollout_steps"], 2
+            ),
+        }
+    return {
+        "learner_ceiling_steps_per_s": round(ceiling),
+        "workers_at_the_ceiling": round(ceiling / per_worker, 2),
+        "at": rows,
     }
 
 
@@ -165,6 +237,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="magent/pursuit")
     parser.add_argument("--agents", default="16")
+    parser.add_argument("--obstacles", default="0")
+    parser.add_argument("--updates-per-rollout", type=int, default=4, help="as udan-train's")
     parser.add_argument("--n-envs", type=int, default=16, help="episodes per rollout")
     parser.add_argument("--max-steps", type=int, default=0, help="0: the task's own (300)")
     parser.add_argument("--map-size", type=int, default=0, help="0: the task's own")
@@ -179,7 +253,8 @@ def main() -> int:
     cfg = TrainConfig(
         env=args.env,
         agents=args.agents,
-        obstacles="0",
+        obstacles=args.obstacles,
+        updates_per_rollout=args.updates_per_rollout,
         n_envs=args.n_envs,
         max_steps=args.max_steps,
         map_size=args.map_size,
@@ -196,8 +271,9 @@ def main() -> int:
             "cpus": os.cpu_count(),
             "load_average_before": round(load_before, 2),
         },
-        "rollouts": rollout_blocks(cfg, args.pairs, args.rollouts),
     }
+    result["rollouts"], result["learner"] = rollout_blocks(cfg, args.pairs, args.rollouts)
+    result["projection"] = projection(result["rollouts"], result["learner"])
     if args.train_steps:
         result["training"] = training_blocks(cfg, args.train_steps, args.train_pairs)
     result["conditions"]["load_average_after"] = round(os.getloadavg()[0], 2)
