@@ -63,14 +63,17 @@ compare = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(compare)
 
 
-def one_process(worker: RolloutWorker, replay: EpisodeReplay, weights: dict, count: int) -> float:
-    """Steps per second of ``count`` rollouts played here."""
-    started, steps = time.perf_counter(), 0
+def one_process(
+    worker: RolloutWorker, replay: EpisodeReplay, weights: dict, count: int
+) -> tuple[float, float]:
+    """Steps per second of ``count`` rollouts played here, and per second of this process's
+    CPU time (what a worker with a core of its own would play, whatever the machine's load)."""
+    started, cpu, steps = time.perf_counter(), time.process_time(), 0
     for _ in range(count):
         played = worker.play(weights, EPSILON)
         replay.add(played.episodes)
         steps += played.steps
-    return steps / (time.perf_counter() - started)
+    return steps / (time.perf_counter() - started), steps / (time.process_time() - cpu)
 
 
 def two_workers(pool: RayPool, replay: EpisodeReplay, shared, count: int) -> tuple[float, list]:
@@ -109,9 +112,11 @@ def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> tuple[dict, dict
         shared = pool.share(weights)
         one_process(here, replay, weights, 1)  # warm-up: first calls, allocations
         two_workers(pool, replay, shared, 1)
-        a, b, per_worker = [], [], []
+        a, a_cpu, b, per_worker = [], [], [], []
         for _ in range(pairs):
-            a.append(one_process(here, replay, weights, count))
+            rate, cpu_rate = one_process(here, replay, weights, count)
+            a.append(rate)
+            a_cpu.append(cpu_rate)
             rate, rates = two_workers(pool, replay, shared, count)
             b.append(rate)
             per_worker += rates
@@ -120,6 +125,7 @@ def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> tuple[dict, dict
     ratio = compare.ratio_ci(a, b)
     rollouts = {
         "one_process_steps_per_s": [round(x) for x in a],
+        "one_process_steps_per_cpu_s": round(statistics.median(a_cpu)),
         "workers_2_steps_per_s": [round(x) for x in b],
         "per_worker_steps_per_s": round(statistics.median(per_worker)),
         "ratio": ratio["ratio"],
@@ -134,37 +140,58 @@ def learner_costs(cfg, model, replay, worker, rollout_bytes) -> dict:
     """What one rollout costs the learner: adding it to the replay, and the updates it earns
     (median of ``TIMED`` updates on batches of the episodes played); the bytes moved."""
     played = worker.play(model.state_dict(), EPSILON)
-    adds = []
-    for _ in range(TIMED):
-        started = time.perf_counter()
-        replay.add(played.episodes)
-        adds.append(time.perf_counter() - started)
+    adds = [timed(lambda: replay.add(played.episodes)) for _ in range(TIMED)]
     target, optim = copy.deepcopy(model), torch.optim.Adam(model.parameters(), lr=cfg.lr)
     rng = np.random.default_rng(0)
     update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)  # warm-up
     updates = []
     for _ in range(TIMED):
         batch = replay.sample(cfg.batch_episodes, rng)
-        started = time.perf_counter()
-        update(model, target, optim, batch, cfg)
-        updates.append(time.perf_counter() - started)
+        updates.append(timed(lambda b=batch: update(model, target, optim, b, cfg)))
     weights = sum(v.numel() * v.element_size() for v in model.state_dict().values())
     return {
-        "update_s": round(statistics.median(updates), 4),
+        "update_s": round(statistics.median(wall for wall, _ in updates), 4),
+        "update_cpu_s": round(statistics.median(cpu for _, cpu in updates), 4),
         "updates_per_rollout": cfg.updates_per_rollout / cfg.update_every,
-        "add_rollout_s": round(statistics.median(adds), 4),
+        "add_rollout_s": round(statistics.median(wall for wall, _ in adds), 4),
+        "add_rollout_cpu_s": round(statistics.median(cpu for _, cpu in adds), 4),
         "rollout_steps": played.steps,
         "rollout_mb": round(rollout_bytes / 1e6, 2),
         "weights_mb": round(weights / 1e6, 3),
     }
 
 
-def projection(rollouts: dict, learner: dict) -> dict:
-    """On paper, from the figures measured: the single learner's ceiling (it runs the updates
-    one process would run for every rollout), the workers that reach it, and at 8, 32 and 128
-    workers the throughput and what flows into and out of the learner."""
-    per_worker = rollouts["per_worker_steps_per_s"]
-    per_rollout = learner["updates_per_rollout"] * learner["update_s"] + learner["add_rollout_s"]
+def timed(fn) -> tuple[float, float]:
+    """Wall and CPU seconds of ``fn()``."""
+    started, cpu = time.perf_counter(), time.process_time()
+    fn()
+    return time.perf_counter() - started, time.process_time() - cpu
+
+
+def projections(rollouts: dict, learner: dict) -> dict:
+    """:func:`projection` from the wall-clock figures (as measured, under this run's load) and
+    from the CPU-time ones (each process with a core of its own)."""
+    return {
+        "wall": projection(
+            rollouts["per_worker_steps_per_s"],
+            learner["update_s"],
+            learner["add_rollout_s"],
+            learner,
+        ),
+        "free_cores": projection(
+            rollouts["one_process_steps_per_cpu_s"],
+            learner["update_cpu_s"],
+            learner["add_rollout_cpu_s"],
+            learner,
+        ),
+    }
+
+
+def projection(per_worker: float, update_s: float, add_s: float, learner: dict) -> dict:
+    """On paper: the single learner's ceiling (it runs the updates one process would run for
+    every rollout), the workers that reach it, and at 8, 32 and 128 workers the throughput and
+    what flows into and out of the learner."""
+    per_rollout = learner["updates_per_rollout"] * update_s + add_s
     ceiling = learner["rollout_steps"] / per_rollout
     mb_per_step = learner["rollout_mb"] / learner["rollout_steps"]
     rows = {}
@@ -174,8 +201,8 @@ def projection(rollouts: dict, learner: dict) -> dict:
             "steps_per_s": round(steps),
             "learner_bound": workers * per_worker > ceiling,
             "rollouts_in_mb_per_s": round(steps * mb_per_step, 1),
-            "weights_out_mb_per_s": round(
-                workers * learner["weights_mb"] * steps / learner["rollout_steps"], 2
+            "weights_out_mb_per_s": round(  # a copy with each rollout asked for
+                learner["weights_mb"] * steps / learner["rollout_steps"], 3
             ),
         }
     return {
@@ -273,7 +300,7 @@ def main() -> int:
         },
     }
     result["rollouts"], result["learner"] = rollout_blocks(cfg, args.pairs, args.rollouts)
-    result["projection"] = projection(result["rollouts"], result["learner"])
+    result["projection"] = projections(result["rollouts"], result["learner"])
     if args.train_steps:
         result["training"] = training_blocks(cfg, args.train_steps, args.train_pairs)
     result["conditions"]["load_average_after"] = round(os.getloadavg()[0], 2)

@@ -223,13 +223,14 @@ def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
 
 @pytest.mark.slow
 def test_ctrl_c_on_the_command_line_writes_a_checkpoint(tmp_path):
-    """SIGINT to the whole process group, as a terminal's Ctrl-C: Ray's processes get it too."""
+    """SIGINT to the whole process group, as a terminal's Ctrl-C: Ray's processes get it too.
+    RAY_ADDRESS names a cluster that is not there: --workers starts a Ray of its own anyway."""
     out = tmp_path / "w"
     cmd = [Path(sys.executable).parent / "udan-train", "--steps", 100_000, "--n-envs", 4,
            "--batch-episodes", 4, "--hidden", 16, "--workers", 2, "--out", out]  # fmt: skip
     proc = subprocess.Popen(
         list(map(str, cmd)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, env={**os.environ, "RAY_ADDRESS": "127.0.0.1:1"},
     )  # fmt: skip
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline and not (out / "progress.csv").is_file():

@@ -25,9 +25,12 @@ class ScaleError(ValueError):
     """A cluster that cannot be reached or used: the CLIs say so in one line, exit code 2."""
 
 
-#: An unreachable or silent ``--address`` is reported within this many seconds of trying
-#: (with the command's start-up, within 10 s).
-CONNECT_SECONDS = 6.0
+#: An ``--address`` where nothing answers, or nothing that speaks gRPC, is reported within
+#: this many seconds of trying (with the command's start-up, within 10 s).
+PROBE_SECONDS = 6.0
+#: Joining what answers there may take longer (a Ray client server starts a process for each
+#: client): it is given up after this many seconds.
+JOIN_SECONDS = 60.0
 #: Ray's smallest object store; ours is the command's need, at least this.
 MIN_OBJECT_STORE = 80 * 1024**2
 #: Ray's settings unless the environment says otherwise, read when Ray is imported: no usage
@@ -60,7 +63,7 @@ def check_address(address: str, timeout: float) -> None:
         raise ScaleError(f"--address {address!r}: expected ray://HOST:PORT, HOST:PORT or auto")
     started = time.monotonic()
     try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout / 2).close()
     except OSError as err:
         reason = err.strerror or type(err).__name__
         raise ScaleError(f"--address {address}: no Ray cluster answers there ({reason})") from None
@@ -84,9 +87,9 @@ class _SilenceThreadNotice(logging.Filter):
 
 
 def _join(ray, address: str) -> None:
-    """``ray.init(address)`` within :data:`CONNECT_SECONDS`, or :class:`ScaleError`."""
-    started = time.monotonic()
-    check_address(address, CONNECT_SECONDS / 2)
+    """``ray.init(address)``, once :func:`check_address` found it answering, within
+    :data:`JOIN_SECONDS`, or :class:`ScaleError`."""
+    check_address(address, PROBE_SECONDS)
     outcome: dict[str, BaseException | None] = {}
 
     def connect() -> None:
@@ -101,12 +104,12 @@ def _join(ray, address: str) -> None:
     try:
         thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
         thread.start()
-        thread.join(max(CONNECT_SECONDS - (time.monotonic() - started), 0.1))
+        thread.join(JOIN_SECONDS)
     finally:
         logging.getLogger("ray._private.worker").removeFilter(notice)
     if "error" not in outcome:
         raise ScaleError(
-            f"--address {address}: no answer from a Ray cluster within {CONNECT_SECONDS:.0f} s"
+            f"--address {address}: no answer from a Ray cluster within {JOIN_SECONDS:.0f} s"
         )
     if outcome["error"] is not None:
         first = str(outcome["error"]).strip().splitlines()[0][:160]
@@ -129,6 +132,7 @@ def ray_session(cpus: int, address: str = "", object_store_bytes: int = 0) -> It
             _join(ray, address)
         else:
             ray.init(
+                address="local",  # a new local Ray, even where another one runs
                 num_cpus=cpus,
                 include_dashboard=False,
                 object_store_memory=max(object_store_bytes, MIN_OBJECT_STORE),

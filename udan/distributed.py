@@ -7,14 +7,15 @@ The learner (:func:`train_with_workers`) keeps every worker busy: when a rollout
 that worker for the next one at once, then adds the episodes to its replay and runs the updates
 one process would run for them (``updates_per_rollout`` every ``update_every`` rollouts). So
 updates per episode, replay, checkpoints and logs are as in one process; what differs is that a
-rollout acts with weights one or two rounds of updates older.
+rollout acts with weights some rounds of updates older (up to one round per worker), and that
+the order in which rollouts arrive makes a run with workers not exactly reproducible.
 
-A pool (:class:`WorkerPool`) carries requests and rollouts. Backends are registered by name and
-imported lazily: ``local`` plays the requests in this process, one after the other (the fast
-tests; debugging without Ray); ``ray`` runs each worker as a Ray actor (:mod:`udan.cluster`
-starts or joins Ray). A
-worker that dies is replaced by a new one with seeds of its own; its unfinished rollout is lost,
-never counted, and the learner refuses any rollout it has already counted.
+A pool (:class:`WorkerPool`) carries requests and rollouts. Backends are registered by name,
+Ray imported only when its pool is made: ``local`` plays the requests in this process, one after
+the other (the fast tests; debugging without Ray); ``ray`` runs each worker as a Ray actor
+(:mod:`udan.cluster` starts or joins Ray). A worker that dies is replaced by a new one with
+seeds of its own; its unfinished rollout is lost, never counted, and the learner refuses any
+rollout it has already counted.
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ class WorkerPool:
     @property
     def capacity(self) -> int:
         """Workers this pool can run at once (``--workers``, or what the cluster offers)."""
-        return self.cfg.workers
+        raise NotImplementedError
 
     def start(self, spec: ModelSpec, slots: int, first_serial: int) -> None:
         """``slots`` workers acting with networks of ``spec``, serials from ``first_serial``."""
