@@ -101,8 +101,7 @@ def two_workers(pool: RayPool, replay: EpisodeReplay, shared, count: int) -> tup
 def rollout_blocks(cfg: TrainConfig, pairs: int, count: int) -> tuple[dict, dict]:
     """The rollout blocks' figures, and the learner's costs measured on what they played."""
     env, model = build(dataclasses.replace(cfg, n_envs=1))
-    shape = (env.config.max_steps, env.slots, env.spec.size, cfg.group_size, 0)
-    replay = EpisodeReplay(max(4 * cfg.n_envs, cfg.batch_episodes), *shape)
+    replay = EpisodeReplay.for_run(cfg, env, model.spec, max(4 * cfg.n_envs, cfg.batch_episodes))
     rollout_bytes = sum(a.nbytes for a in replay.data.values()) // replay.capacity * cfg.n_envs
     weights = model.state_dict()
     here = RolloutWorker(cfg, model.spec, serial=2)

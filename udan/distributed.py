@@ -299,14 +299,7 @@ def train_with_workers(cfg: TrainConfig, resume: bool = False, log: Callable = p
         raise EnvConfigError("--workers must be >= 0 and --broadcast-every >= 1")
     torch.set_num_threads(cfg.torch_threads)
     env, model = build(dataclasses.replace(cfg, n_envs=1))  # plays nothing: the task's shapes
-    replay = EpisodeReplay(
-        cfg.buffer_episodes,
-        env.config.max_steps,
-        env.slots,
-        env.spec.size,
-        cfg.group_size,
-        model.spec.state_dim,
-    )
+    replay = EpisodeReplay.for_run(cfg, env, model.spec)
     episode_bytes = sum(a.nbytes for a in replay.data.values()) // replay.capacity
     pool = open_pool(cfg, cfg.n_envs * episode_bytes)  # first: a bad --address fails fast
     try:

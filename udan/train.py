@@ -194,6 +194,21 @@ class EpisodeReplay:
         self.data["groups"][...] = -1
 
     @classmethod
+    def for_run(
+        cls, cfg: TrainConfig, env: ArenaBatch, spec: ModelSpec, capacity: int = 0
+    ) -> EpisodeReplay:
+        """The replay of a run of ``cfg`` on ``env``'s task with networks of ``spec``, holding
+        ``capacity`` episodes (default: ``cfg.buffer_episodes``)."""
+        return cls(
+            capacity or cfg.buffer_episodes,
+            env.config.max_steps,
+            env.slots,
+            env.spec.size,
+            cfg.group_size,
+            spec.state_dim,
+        )
+
+    @classmethod
     def compact(cls, episodes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``episodes`` as the replay stores them (what :meth:`add` would keep of them), so a
         rollout worker sends half the bytes."""
@@ -636,14 +651,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     env, model = build(cfg)
     target = copy.deepcopy(model)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    replay = EpisodeReplay(
-        cfg.buffer_episodes,
-        env.config.max_steps,
-        env.slots,
-        env.spec.size,
-        cfg.group_size,
-        model.spec.state_dim,
-    )
+    replay = EpisodeReplay.for_run(cfg, env, model.spec)
     run = Run(cfg, env, resume, ("td_loss", "leader_loss"), log)
     replay_path = run.out / "replay.npz"
     if run.checkpoint is not None:
