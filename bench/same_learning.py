@@ -97,6 +97,9 @@ def main() -> int:
         "workers_score": after,
         "difference": summary(workers - reference),
         "verdict": "PASS" if after["mean"] >= before["ci95"][0] else "FAIL",
+        "reading": "the intervals are over evaluation episodes; a run with workers is not "
+        "reproducible, like a run with another seed, and training runs differ by more than "
+        "these intervals (not measured here)",
     }
     json.dump(result, sys.stdout, indent=2)
     print()
