@@ -7,7 +7,7 @@ an optional extra (``pip install udan-edge[scale]``) and the edge never imports 
 CPUs asked for, no dashboard, an object store as large as the command's data needs, logs kept
 out of the command's output, token authentication on), or joins the cluster at ``--address``;
 it always shuts Ray down, however the command ends. An address that cannot be reached is a
-:class:`ScaleError` within :data:`CONNECT_SECONDS`, never a hang.
+:class:`ScaleError` within :data:`PROBE_SECONDS`, never a hang.
 """
 
 from __future__ import annotations
@@ -41,6 +41,8 @@ RAY_ENVIRONMENT = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token"}
 
 
 def import_ray():
+    """The ``ray`` module, imported with :data:`RAY_ENVIRONMENT`; :class:`ScaleError` naming
+    the extra when it is not installed."""
     for key, value in RAY_ENVIRONMENT.items():
         os.environ.setdefault(key, value)
     try:
@@ -52,21 +54,20 @@ def import_ray():
     return ray
 
 
-def check_address(address: str, timeout: float) -> None:
+def check_address(address: str, timeout: float, name: str = "") -> None:
     """Refuse, within ``timeout`` seconds, an ``--address`` that is malformed, where nothing
     answers, or where what answers does not speak gRPC (Ray's GCS and client server do): Ray
-    itself would retry such an address for minutes."""
-    if address == "auto":
-        return
+    itself would retry such an address for minutes. ``name``: how the user wrote it."""
+    name = f"{name} ({address})" if name else address
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise ScaleError(f"--address {address!r}: expected ray://HOST:PORT, HOST:PORT or auto")
+        raise ScaleError(f"--address {name!r}: expected ray://HOST:PORT, HOST:PORT or auto")
     started = time.monotonic()
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout / 2).close()
     except OSError as err:
         reason = err.strerror or type(err).__name__
-        raise ScaleError(f"--address {address}: no Ray cluster answers there ({reason})") from None
+        raise ScaleError(f"--address {name}: no Ray cluster answers there ({reason})") from None
     import grpc
 
     with grpc.insecure_channel(f"{host}:{port}") as channel:
@@ -74,7 +75,7 @@ def check_address(address: str, timeout: float) -> None:
             grpc.channel_ready_future(channel).result(timeout - (time.monotonic() - started))
         except grpc.FutureTimeoutError:
             raise ScaleError(
-                f"--address {address}: what answers there is not a Ray cluster (no gRPC)"
+                f"--address {name}: what answers there is not a Ray cluster (no gRPC)"
             ) from None
 
 
@@ -86,10 +87,28 @@ class _SilenceThreadNotice(logging.Filter):
         return "SIGTERM handler is not set" not in record.getMessage()
 
 
+def auto_address() -> str:
+    """The cluster ``--address auto`` means, found as Ray finds it (``RAY_ADDRESS``, a Ray
+    running on this machine, the last one started here), so it can be probed like any other.
+    Ray's own resolver, which is not public API: the ``scale`` extra pins Ray's version."""
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        found = canonicalize_bootstrap_address("auto")
+    except (ConnectionError, ValueError) as err:
+        raise ScaleError(f"--address auto: {str(err).strip().splitlines()[0]}") from None
+    if found is None:
+        raise ScaleError("--address auto: no Ray cluster runs on this machine")
+    return found
+
+
 def _join(ray, address: str) -> None:
     """``ray.init(address)``, once :func:`check_address` found it answering, within
     :data:`JOIN_SECONDS`, or :class:`ScaleError`."""
-    check_address(address, PROBE_SECONDS)
+    if address == "auto":
+        check_address(auto_address(), PROBE_SECONDS, "auto")
+    else:
+        check_address(address, PROBE_SECONDS)
     outcome: dict[str, BaseException | None] = {}
 
     def connect() -> None:

@@ -261,7 +261,8 @@ def open_pool(cfg: TrainConfig, rollout_bytes: int) -> WorkerPool:
 class StopRequest:
     """Ctrl-C (SIGINT) asks the learner to stop after its current update and write a
     checkpoint; a second Ctrl-C interrupts at once. Outside the main thread, where no signal
-    arrives, it does nothing."""
+    arrives, and where SIGINT is ignored (a job started with ``nohup`` or ``&``), it does
+    nothing."""
 
     def __init__(self) -> None:
         self.requested = False
@@ -272,6 +273,8 @@ class StopRequest:
         signal.signal(signal.SIGINT, self.previous)
 
     def __enter__(self) -> StopRequest:
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            return self
         try:
             self.previous = signal.signal(signal.SIGINT, self._handle)
         except ValueError:  # not the main thread
