@@ -40,6 +40,11 @@ AXES: dict[str, dict[int, str]] = {
 #: an absent slot's row (all -1) then averages agent 0's value over its K columns, which is
 #: what the model's always-valid first column gives it, instead of NaN.
 NO_NEIGHBOUR = -1e30
+#: The leader attention's weights that the graph holds only as products (folded in float64).
+LEADER_FOLDED = (
+    "leader.query.weight", "leader.query.bias", "leader.key.weight", "leader.value.weight",
+    "leader.value.bias", "leader.out.weight", "leader.out.bias",
+)  # fmt: skip
 
 F32, I64, BOOL = TensorProto.FLOAT, TensorProto.INT64, TensorProto.BOOL
 
@@ -278,16 +283,20 @@ def _leader(s: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
     # weights, which sum to 1, so the attended part of the score is the attention-weighted
     # sum of one number per agent, f_j . (w_out W_v). No key or value is computed, and no
     # attended (N, H) vector either.
-    w_q, b_q = w["leader.query.weight"], w["leader.query.bias"]  # (A, H), (A,)
-    w_k, w_v = w["leader.key.weight"], w["leader.value.weight"]
-    scale = np.float32(w_k.shape[0] ** -0.5)
-    w_out = w["leader.out.weight"][0]  # (A + H,): attended, then own features
+    # The folds are products of weight matrices. Computed in float32, their last bits depend
+    # on the BLAS kernel the machine picks (so the file's bytes did); in float64, rounded to
+    # float32 once, they are the same everywhere.
+    f64 = {k: w[k].astype(np.float64) for k in LEADER_FOLDED}
+    w_q, b_q = f64["leader.query.weight"], f64["leader.query.bias"]  # (A, H), (A,)
+    w_k, w_v = f64["leader.key.weight"], f64["leader.value.weight"]
+    scale = w_k.shape[0] ** -0.5
+    w_out = f64["leader.out.weight"][0]  # (A + H,): attended, then own features
     w_attended, w_own = w_out[: w_v.shape[0]], w_out[w_v.shape[0] :]
     query = s.op(
         "Gemm",
         feats,
-        s.weight("leader_w_query", (w_q.T @ w_k) * scale),
-        s.weight("leader_b_query", (b_q @ w_k) * scale),
+        s.weight("leader_w_query", np.float32((w_q.T @ w_k) * scale)),
+        s.weight("leader_b_query", np.float32((b_q @ w_k) * scale)),
     )
     rows = s.op("Max", "neighbours", s.const(0, scalar=True))  # -1 (none) reads row 0, masked
     near = s.op("Gather", feats, rows)  # (N, K, H)
@@ -297,8 +306,8 @@ def _leader(s: _Graph, w: Mapping[str, np.ndarray], feats: str) -> None:
     scores = s.op("Where", there, scores, s.const(NO_NEIGHBOUR, scalar=True))
     attn = s.op("Softmax", scores, axis=-1)  # (N, K)
     # per agent: what it adds to a score as a neighbour (column 0), and its own part (column 1)
-    w_parts = np.stack([w_attended @ w_v, w_own], axis=1)  # (H, 2)
-    b_own = w["leader.out.bias"][0] + w_attended @ w["leader.value.bias"]
+    w_parts = np.float32(np.stack([w_attended @ w_v, w_own], axis=1))  # (H, 2)
+    b_own = f64["leader.out.bias"][0] + w_attended @ f64["leader.value.bias"]
     parts = s.op(
         "Gemm",
         feats,

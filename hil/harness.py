@@ -48,6 +48,8 @@ from udan.models import DEFAULT_POLICY, bundled_policy
 PROG = "udan-hil"
 TASKS = ("find_water",)
 MARKER_BASE = 10
+FIRST_EPISODE_POLL_S = 0.02
+"""How often the fault injector asks the world whether the first episode has started."""
 
 
 class HarnessError(RuntimeError):
@@ -203,12 +205,19 @@ class Loop:
         return self._spawn("edge", cmd)
 
     async def apply_faults(self, control: tuple[str, int]) -> None:
-        """Network faults on every car now, then the timed events as their time comes."""
+        """Network faults on every car now, then the timed events as their time comes, counted
+        from the first episode's start (the edge can take seconds to start on a loaded machine:
+        a forged datagram sent before it listens would be lost, not refused)."""
         if self.faults.network:
             for car in range(1, self.cars[1] + 1):
                 await world_request(
                     control, {"op": "faults", "car": car, "set": self.faults.network}
                 )
+        if self.faults.events:
+            while (await world_request(control, {"op": "state"}))["episode"] < 0:
+                if self.procs["edge"].poll() is not None:
+                    return
+                await asyncio.sleep(FIRST_EPISODE_POLL_S)
         start = time.monotonic()
         for event in sorted(self.faults.events, key=lambda e: e.at_s):
             await asyncio.sleep(max(0.0, start + event.at_s - time.monotonic()))

@@ -408,7 +408,7 @@ class WorldServer:
         if op == "episode":
             return self._episode(int(request["index"]))
         if op == "state":
-            return self.world.state()
+            return {**self.world.state(), "episode": self.episode_index}
         if op == "counters":
             return {"cars": {str(c): car.counters() for c, car in self.cars.items()}}
         if op == "cars":
