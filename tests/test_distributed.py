@@ -227,8 +227,8 @@ def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
     cfg = TrainConfig(steps=2400, out=str(tmp_path / "w"), checkpoint_every=1200, workers=2, **TINY)
     killed = []
 
-    def kill_a_worker_at_the_third_rollout(*args, **kwargs):
-        if len(killed) == 0 and args and "steps 600" in args[0]:
+    def kill_a_worker_once_both_have_played(*args, **kwargs):
+        if not killed and args and "w0 " in args[0] and "w1 " in args[0]:
             workers = ray_workers(os.getpid())
             assert len(workers) == 2, workers
             os.kill(workers[0], signal.SIGKILL)
@@ -236,7 +236,7 @@ def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
         if args and "lost" in args[0]:
             killed.append(args[0])
 
-    ckpt = load_checkpoint(train(cfg, log=kill_a_worker_at_the_third_rollout))
+    ckpt = load_checkpoint(train(cfg, log=kill_a_worker_once_both_have_played))
     assert ckpt["progress"]["steps"] == 2400
     assert ckpt["workers"]["lost"] == 1 and ckpt["workers"]["started"] == 3
     assert "takes over" in killed[1]
@@ -257,6 +257,7 @@ def test_ctrl_c_on_the_command_line_writes_a_checkpoint(tmp_path):
     proc = subprocess.Popen(
         list(map(str, cmd)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True, env={**os.environ, "RAY_ADDRESS": "127.0.0.1:1"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal's job
     )  # fmt: skip
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline and not (out / "progress.csv").is_file():
