@@ -13,8 +13,17 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[train,scale,dev]'
+	$(PY) -m pip install --quiet -e '.[train,scale,dev,web]'
 	touch $(STAMP)
+
+# A real headless browser for the live page's tests: Debian's chromium (Playwright drives it; its
+# own browser download is not used). Installed with apt when missing (CI runs as root).
+CHROMIUM := /usr/bin/chromium
+$(CHROMIUM):
+	@command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] || \
+	  { echo "make: the live page's tests need Debian's chromium: apt-get install chromium"; exit 1; }
+	DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium \
+	  || { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium; }
 
 # The edge runtime against the virtual camera and the mock fleet, with the bundled policy.
 demo: $(STAMP)
@@ -22,14 +31,14 @@ demo: $(STAMP)
 	$(VENV)/bin/udan-edge --sim --cars 5 --duration 30 --report out/demo/report.json \
 	  --telemetry out/demo/telemetry.jsonl --video out/demo/run.mp4
 
-test: $(STAMP)
+test: $(STAMP) $(CHROMIUM)
 	$(PY) -m pytest -q -m "not slow"
 
-test-slow: $(STAMP)
+test-slow: $(STAMP) $(CHROMIUM)
 	$(PY) -m pytest -q -m slow
 
 # The hardware-in-the-loop suite, long cases included (the fast ones also run in `make test`).
-hil: $(STAMP)
+hil: $(STAMP) $(CHROMIUM)
 	$(PY) -m pytest -q -m hil
 
 bench: $(STAMP)

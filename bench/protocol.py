@@ -53,7 +53,7 @@ def genuine_frames() -> tuple[CarCore, ep.EdgeProtocol, list[bytes], int]:
     Shared with tests/test_protocol_fuzz.py, so the hypothesis tests and this fuzz round mutate
     the same frames. The car has handled the time request and the second command; the other
     edge frames are still fresh to it. Every type is there, the handshake's (JOIN, ACCEPT,
-    HELLO) included.
+    HELLO) included, and commands with and without their target, pose and start delay.
     """
     car_now = 80_000
     car = CarCore(1, KEY, marker=3)
@@ -70,6 +70,9 @@ def genuine_frames() -> tuple[CarCore, ep.EdgeProtocol, list[bytes], int]:
     for action in range(6):
         pool.append(edge.encode_command(1, action, validity_ns=900_000_000))
     pool += [edge.encode_estop(1, True), edge.encode_estop(1, False)]
+    seen = ep.Guidance((1.4, 1.089, 0.0), (1.412, 1.085, 0.035), 4_990_000_000, 0.65)
+    for guidance in (seen, ep.Guidance((0.156, 2.644, -3.1))):  # target, pose, delay; target
+        pool.append(edge.encode_command(1, 3, 900_000_000, guidance))
     pool.append(car.status(car_now, Telemetry(row=1, col=2, moving=True, done_seq=3)))
     pool.append(car.leave(car_now, 1))
     pool += list(car.handle(pool[6], car_now).replies)

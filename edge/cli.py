@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -27,12 +28,14 @@ from typing import Any
 
 from udan.edge.calibration import VisionError
 from udan.edge.camera import CameraError, FrameGrabber, open_camera
-from udan.edge.core import ControlCore
+from udan.edge.core import ControlCore, MotionRules
 from udan.edge.decide import DecisionStep, TaskError, task_of
 from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from udan.edge.fleet import Fleet
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
+from udan.edge.live import MIN_TOKEN_CHARS, LiveView, WebError, web_address
+from udan.edge.overlay import OverlaySettings
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.perception import (
     PerceptionError,
@@ -41,7 +44,8 @@ from udan.edge.perception import (
     VisionSettings,
 )
 from udan.edge.shell import EdgeShell, LoopConfig
-from udan.edge.telemetry import Telemetry
+from udan.edge.sidecar import exit_with_parent, parent_watch_env
+from udan.edge.telemetry import DEADLINE_NS, Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
 from udan.envs.errors import OneLineParser
 from udan.export.metadata import MetadataError, obs_spec
@@ -50,6 +54,7 @@ from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-edge"
 SIM_MARKER_BASE = 10
+WEB_TOKEN_ENV = "UDAN_WEB_TOKEN"
 
 
 class UsageError(ValueError):
@@ -107,6 +112,18 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="seconds to run (default: until Ctrl-C)")
     run.add_argument("--step-timeout", type=float, default=1.0, help="longest step wait (s)")
     run.add_argument("--lost", type=float, default=0.5, help="a car unseen this long leaves (s)")
+    run.add_argument(
+        "--settle-mm", type=float, default=30.0,
+        help="a car farther than this from its cell's centre is re-centred before a step",
+    )  # fmt: skip
+    run.add_argument(
+        "--settle-deg", type=float, default=5.0,
+        help="... or turned farther than this from facing up",
+    )  # fmt: skip
+    run.add_argument(
+        "--body-mm", type=float, default=220.0,
+        help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -122,13 +139,31 @@ def _parser() -> argparse.ArgumentParser:
     out.add_argument("--report", type=Path, help="write the totals as JSON here at exit")
     out.add_argument("--telemetry", type=Path, help="write per-frame/per-step JSON lines here")
     out.add_argument("--quiet", action="store_true", help="no live summary line")
+    out.add_argument(
+        "--video", type=Path, help="record the camera to this MP4 with what the controller "
+        "thinks drawn on it: cars, cells, groups, leaders, commands, score, latency",
+    )  # fmt: skip
+    out.add_argument(
+        "--web", metavar="HOST:PORT", help="serve the live page and Prometheus /metrics here "
+        "(a port alone is on 127.0.0.1; port 0 picks a free one); off by default",
+    )  # fmt: skip
+    out.add_argument(
+        "--web-token", default=os.environ.get(WEB_TOKEN_ENV), metavar="TOKEN",
+        help=f"enables the page's stop-all button for whoever gives this token (at least "
+        f"{MIN_TOKEN_CHARS} characters; needed for a non-loopback --web; default: "
+        f"${WEB_TOKEN_ENV}, which keeps it off the process list)",
+    )  # fmt: skip
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
-    sim.add_argument("--video", type=Path, help="record the virtual camera to this MP4")
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
     sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
+
+
+def _half_cell_m() -> float:
+    """Half a cell's side (metres): a car farther than that off centre is in another cell."""
+    return ArenaGeometry().cell_m / 2
 
 
 def _writable(path: Path | None, what: str) -> None:
@@ -176,24 +211,52 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         args.calibration,
         {c.marker: c.marker_height_m for c in cars},
     )
-    # the perception process starts first and opens the camera while the model loads
-    perception = ProcessPerception(args.camera, settings) if args.perception == "process" else None
+    overlay = OverlaySettings(
+        None if args.video is None else str(args.video),
+        thumbnails=args.web is not None,
+        markers={c.car_id: c.marker for c in cars},
+    )
+    # the perception (and web) processes start first and open the camera (bind the page's
+    # address) while the model loads
+    perception = None
+    if args.perception == "process":
+        perception = ProcessPerception(args.camera, settings, overlay)
+    live = None
     try:
+        if args.web is not None:
+            config = {
+                "rows": geometry.rows,
+                "cols": geometry.cols,
+                "cars": [c.car_id for c in cars],
+                "deadline_ms": DEADLINE_NS / 1e6,
+            }
+            live = LiveView(*web_address(args.web, args.web_token), args.web_token, config)
         _, policy_step = load_policy(args.model, geometry)
         transport = open_transport(args.transport, cars, **_transport_options(args))
         if perception is None:
-            perception = ThreadPerception(FrameGrabber(open_camera(args.camera)), settings.build())
+            grabber = FrameGrabber(open_camera(args.camera))
+            perception = ThreadPerception(grabber, settings.build(), overlay)
         perception.wait_ready()
+        if live is not None:
+            print(f"{PROG}: live view at {live.wait_ready()}", flush=True)
     except BaseException:
         if perception is not None:
             perception.close()
+        if live is not None:
+            live.close()
         raise
     link = CarLink(cars, transport)
     telemetry = Telemetry(args.telemetry, live=not args.quiet)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
     fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
-    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing)
-    shell = EdgeShell(perception, link, core, telemetry, config)
+    motion = MotionRules(
+        args.settle_mm / 1000,
+        math.radians(args.settle_deg),
+        geometry=geometry,
+        body_m=args.body_mm / 1000,
+    )
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion)
+    shell = EdgeShell(perception, link, core, telemetry, config, live)
     play = None
     if world is not None:
         play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
@@ -202,12 +265,16 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         await link.start()
     except BaseException:
         perception.close()
+        if live is not None:
+            live.close()
         raise
     try:
         return await shell.run(play)
     finally:
         await link.close()
         telemetry.close()
+        if live is not None:
+            live.close()
 
 
 def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
@@ -218,12 +285,12 @@ def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) 
         "--agents", f"1-{args.cars}", "--obstacles", args.obstacles, "--seed", str(args.seed),
         "--cell-time-ms", str(args.cell_time_ms),
     ]  # fmt: skip
-    if args.video:
-        cmd += ["--video", str(args.video)]
     INTERRUPTS.hold()  # a signal inside Popen would leave the world running and unnamed
     proc = None
     try:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, text=True, start_new_session=True, env=parent_watch_env()
+        )
         INTERRUPTS.release()
         line = proc.stdout.readline() if proc.stdout else ""
         ready = json.loads(line)
@@ -298,12 +365,26 @@ def _event_loop_runner() -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
+    exit_with_parent()  # if whoever started us asked (udan-hil run): its end is our SIGTERM
     args = _parser().parse_args(argv)
     INTERRUPTS.install()
     try:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
         _writable(args.video, "--video")
+        if not (0 < args.settle_mm < 1000 * _half_cell_m() and 0 < args.settle_deg < 90):
+            raise UsageError(
+                f"--settle-mm {args.settle_mm:g} / --settle-deg {args.settle_deg:g}: a tolerance "
+                f"must be above 0 and below half a cell ({1000 * _half_cell_m():.0f} mm) "
+                "and 90 degrees"
+            )
+        if not 0 < args.body_mm < 2000 * _half_cell_m():
+            raise UsageError(
+                f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
+                f"cell ({2000 * _half_cell_m():.0f} mm)"
+            )
+        if args.web is not None:
+            web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:
             _realtime()
         if args.sim:
@@ -317,7 +398,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = _event_loop_runner()(runner)
     except (
         UsageError, CameraError, VisionError, FleetFileError, TransportError, TaskError,
-        WorldError,
+        WorldError, WebError,
     ) as err:  # fmt: skip
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2

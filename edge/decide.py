@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import chain
 
 import numpy as np
 
 from udan.edge.fleet import FleetState
+from udan.edge.protocol import Guidance
 from udan.edge.safety import Filtered, filter_moves
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
 from udan.envs.observe import ObsSpec, observe
@@ -53,6 +54,15 @@ class Decision:
     stopped: int
     spans_ns: dict[str, int]
     formed: bool = False  # the policy formed groups this step (its slowest kind of step)
+    targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    """(N, 2) the cell each car's command takes it to (a car still in a move: the cell its
+    move is heading for)."""
+    guidance: Mapping[int, Guidance] = field(default_factory=dict)
+    """Per car: its target cell's centre and its measured pose, for the command (filled by
+    the control core, which knows where the cells are and where the camera saw the cars)."""
+    after: Mapping[int, int] = field(default_factory=dict)
+    """Car -> the car whose cell it enters as that one leaves: its command goes out only once
+    that car accepted its own (filled by the control core)."""
 
 
 def _blockers(
@@ -104,6 +114,14 @@ class DecisionStep:
             out[car] = out.get(car, 0.0) + float(self.slot_return[slot])
         return out
 
+    def groups(self) -> list[list[int]]:
+        """The policy's groups as they stand after the last step, as car ids, leader first then
+        by distance (a car in several groups bridges them); empty for a policy without them."""
+        groups = self.policy.groups
+        if groups.size == 0:
+            return []
+        return self.owner[groups].tolist()
+
     def layout(self, cells: Mapping[str, frozenset[tuple[int, int]]]) -> tuple[np.ndarray, ...]:
         """Rules cell codes (H, W) from the static cell markers the camera sees, and their
         padded observation bits; kept while the markers stay (they rarely change)."""
@@ -137,7 +155,9 @@ class DecisionStep:
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
         blockers = _blockers(static, state.others)
-        filtered = self._filter(layout, cars, idx, pos[0, idx], actions, blockers, state.moving)
+        filtered, targets = self._filter(
+            layout, cars, idx, pos[0, idx], actions, blockers, state.moving
+        )
         self.t += 1
         self._last = dict(slots), dict(cells_of), dict(static), blockers
         t3 = time.perf_counter_ns()
@@ -150,6 +170,7 @@ class DecisionStep:
             stopped=int(np.count_nonzero(filtered.stopped)),
             spans_ns={"masking": t1 - t0, "inference": t2 - t1, "safety": t3 - t2},
             formed=self.policy.formed,
+            targets=targets,
         )
 
     def rehearse(
@@ -305,14 +326,17 @@ class DecisionStep:
         actions: np.ndarray,
         others: list[tuple[int, int]],
         moving: Mapping[int, int] | None,
-    ) -> Filtered:
-        """The safety filter, then where each car's command should take it (checked next step).
-        Cars still in a move are not checked and hold the cell they are heading for."""
+    ) -> tuple[Filtered, np.ndarray]:
+        """The safety filter, then where each car's command should take it (checked next step),
+        and the cell each car's command aims at. Cars still in a move are not checked and hold
+        the cell they are heading for."""
         expected, wanted, in_move = self.expected[idx], actions, None
+        targets = None
         if moving:
             in_move = np.fromiter((c in moving for c in cars.tolist()), bool, len(cars))
             doing = np.fromiter((moving[c] for c in cars[in_move].tolist()), np.int64)
-            others = others + (car_pos[in_move] + ACTION_DELTAS[doing]).tolist()
+            heading_for = car_pos[in_move] + ACTION_DELTAS[doing]
+            others = others + heading_for.tolist()
             expected = np.where(in_move[:, None], -1, expected)
             wanted = np.where(in_move, WAIT, actions)
         filtered = filter_moves(layout, car_pos, wanted, expected=expected, others=others)
@@ -320,5 +344,21 @@ class DecisionStep:
         step_to = filtered.dest
         if in_move is not None:
             step_to = np.where(in_move[:, None], -1, step_to)
+            targets = filtered.dest.copy()
+            targets[in_move] = heading_for
         self.expected[idx] = step_to
-        return filtered
+        return filtered, filtered.dest if targets is None else targets
+
+    def expected_cell(self, slot: int) -> tuple[int, int] | None:
+        """Where the last command sent the car in ``slot`` (None: nowhere in particular)."""
+        if slot >= len(self.expected) or self.expected[slot, 0] < 0:
+            return None
+        row, col = self.expected[slot].tolist()
+        return row, col
+
+    def redirect(self, slot: int, cell: tuple[int, int]) -> None:
+        """The edge sent the car in ``slot`` to ``cell`` outside a step (re-centring): it is
+        expected there, not stopped for being there (before its first step a car is expected
+        nowhere: nothing to change)."""
+        if slot < len(self.expected):
+            self.expected[slot] = cell

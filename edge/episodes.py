@@ -99,6 +99,7 @@ class EpisodePlayer:
                     "steps": steps,
                     "returns": returns,
                     "score": sum(returns.values()) / len(returns) if returns else None,
+                    "t_ns": time.monotonic_ns(),
                 }
             )
             index += 1

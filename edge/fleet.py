@@ -23,6 +23,9 @@ from collections.abc import Callable, Iterable, Mapping, Set
 from dataclasses import dataclass, field
 
 Cell = tuple[int, int]
+Seen = tuple[float, float, float, int]
+"""Where the camera saw a car: arena metres x, y, heading (radians), and when that frame was
+taken (edge clock, ns)."""
 
 
 @dataclass
@@ -59,6 +62,9 @@ class FleetState:
     ``wait``) on the cell they were last placed in."""
     calibrated: bool = True
     """Whether the frame's camera model placed anything (if not, every car is uncertain)."""
+    poses: Mapping[int, Seen] = field(default_factory=dict)
+    """Car id -> where the camera saw it last and when: what its command tells it, so it
+    drives from where it is (docs/motion.md)."""
 
 
 class Fleet:
@@ -74,6 +80,8 @@ class Fleet:
         self.cell: dict[int, Cell] = {}
         """Where each car was last seen on the grid (kept across episodes: the first step of
         the next one is rehearsed from it)."""
+        self.pose: dict[int, Seen] = {}
+        """Where the camera saw each car last, in metres and radians, and when."""
         self.command: dict[int, int] = {}
         """The last command each car of the fleet was sent."""
         self._last_seen: dict[int, int] = {}
@@ -138,6 +146,7 @@ class Fleet:
         """The fleet as a step decided now sees it."""
         slots = dict(self.slot)
         cells = {c: self.cell[c] for c in slots}
+        poses = {c: self.pose[c] for c in slots if c in self.pose}
         return FleetState(
             slots,
             set(self.fresh),
@@ -149,6 +158,7 @@ class Fleet:
             t_capture_ns,
             uncertain,
             calibrated,
+            poses,
         )
 
     def reset(self) -> None:

@@ -94,7 +94,8 @@ class CommandReport:
     ``result``: the car's ACK result (``accepted``, ``duplicate`` (a resend answered after the
     first ACK was lost: accepted once), ``expired``, ``estopped``, ``bad_time``, ``replay``), or
     ``no_ack`` (sent, nothing came back in time), ``not_ready`` (not joined, synced or heard from:
-    nothing sent), ``too_late`` (the deadline was too close to send), ``rebooted`` / ``left``.
+    nothing sent), ``too_late`` (the deadline was too close to send), ``no_leader`` (it waited
+    for the car whose cell it enters to accept, in vain: nothing sent), ``rebooted`` / ``left``.
     """
 
     car_id: int
@@ -146,6 +147,17 @@ def _proven_on_time(r: CommandReport) -> bool:
 
 
 @dataclass(slots=True)
+class _Round:
+    """The dispatch under way, as a command held back for its leader's ACK needs it."""
+
+    report: DispatchReport
+    cutoff: int
+    guidance: Mapping[int, ep.Guidance]
+    waiting: dict[int, int]  # car -> the car whose ACK it waits for
+    ready: set[int]
+
+
+@dataclass(slots=True)
 class _Flight:
     report: CommandReport
     frame: bytes
@@ -182,6 +194,7 @@ class CarLink:
         self._rejected: Counter[str] = Counter()
         self._counts: Counter[str] = Counter({name: 0 for name in COUNTERS})
         self._flights: dict[int, _Flight] = {}
+        self._round: _Round | None = None
         self._dispatching = False
         self._resolved = asyncio.Event()
         self._ready_seen: frozenset[int] = frozenset()
@@ -317,13 +330,21 @@ class CarLink:
 
     # --- dispatch ---
     async def dispatch(
-        self, actions: Mapping[int, int], decision_ns: int, deadline_ns: int | None = None
+        self,
+        actions: Mapping[int, int],
+        decision_ns: int,
+        deadline_ns: int | None = None,
+        guidance: Mapping[int, ep.Guidance] | None = None,
+        after: Mapping[int, int] | None = None,
     ) -> DispatchReport:
         """Send one step's commands, resend unacked ones while the deadline allows, report.
 
         Each command is valid until ``deadline_ns`` (default ``decision_ns + validity_ns``) in
-        the car's clock. Returns when every command sent is answered, or ``ack_grace_ns`` after
-        the deadline.
+        the car's clock, and carries the car's ``guidance`` if given (its target and measured
+        pose). A car in ``after`` (car -> the car whose cell it enters) is sent its command
+        only once that car has accepted its own: a car that does not move must not be driven
+        into; if it never accepts, the follower gets nothing (``no_leader``) and stays too.
+        Returns when every command sent is answered, or ``ack_grace_ns`` after the deadline.
         Cars that are not ready are reported, not raised; an action outside 0-5 is a
         ``ValueError`` before anything is sent.
         """
@@ -333,32 +354,23 @@ class CarLink:
         commands = {c: CommandReport(c, int(ep.Action(a))) for c, a in actions.items()}
         report = DispatchReport(decision_ns, deadline, commands)
         cutoff = deadline - self._send_margin_ns
-        ready = self.ready_cars()
+        waiting = {c: leader for c, leader in (after or {}).items() if c in commands}
+        self._round = _Round(report, cutoff, guidance or {}, waiting, self.ready_cars())
         self._dispatching = True
         try:
             for car_id, r in commands.items():
-                if car_id not in ready:
+                if car_id not in self._round.ready:
                     r.result = "not_ready"
-                    continue
-                now = self._clock()
-                if now >= cutoff:
-                    r.result = "too_late"
-                    continue
-                frame = self._proto.encode_command(car_id, r.action, validity_ns=deadline - now)
-                r.first_sent_ns = now
-                self._flights[car_id] = flight = _Flight(r, frame)
-                self._transmit(flight, report)
-                self._counts["commands"] += 1
-            for car_id, flight in self._flights.items():
-                decoded = ep.decode(flight.frame)
-                r = flight.report
-                r.seq, r.car_deadline_us = decoded.seq, decoded.fields["deadline_us"]
-                self._cars[car_id].command = SentCommand(
-                    r.seq, decoded.session, r.action, r.car_deadline_us
-                )
+                elif car_id in waiting:
+                    r.result = "no_leader"  # until its leader accepts (_release)
+                else:
+                    self._launch(car_id)
+            for flight in self._flights.values():  # after the sends: they leave back to back
+                self._book(flight)
             await self._await_acks(report, cutoff)
         finally:
             self._flights.clear()
+            self._round = None
             self._dispatching = False
         for r in commands.values():
             if r.result == "not_ready":
@@ -371,6 +383,43 @@ class CarLink:
             report.slow_sends += r.slow_sends
             report.late_sends += r.slow_sends > 0 and not _proven_on_time(r)
         return report
+
+    def _launch(self, car_id: int) -> _Flight | None:
+        """Encode the car's command of the dispatch under way and send it (unless too late)."""
+        rnd = self._round
+        assert rnd is not None
+        r = rnd.report.cars[car_id]
+        now = self._clock()
+        if now >= rnd.cutoff:
+            r.result = "too_late"
+            return None
+        deadline = rnd.report.deadline_ns
+        guide = rnd.guidance.get(car_id)
+        frame = self._proto.encode_command(car_id, r.action, deadline - now, guide)
+        r.first_sent_ns = now
+        self._flights[car_id] = flight = _Flight(r, frame)
+        self._transmit(flight, rnd.report)
+        self._counts["commands"] += 1
+        return flight
+
+    def _book(self, flight: _Flight) -> None:
+        """Remember the command sent (its seq and deadline, for ``move_finished``)."""
+        decoded = ep.decode(flight.frame)
+        r = flight.report
+        r.seq, r.car_deadline_us = decoded.seq, decoded.fields["deadline_us"]
+        self._cars[r.car_id].command = SentCommand(
+            r.seq, decoded.session, r.action, r.car_deadline_us
+        )
+
+    def _release(self, leader: int) -> None:
+        """The car ``leader`` accepted its command: send the commands that waited for it."""
+        rnd = self._round
+        if rnd is None:
+            return
+        for car_id in [c for c, lead in rnd.waiting.items() if lead == leader]:
+            del rnd.waiting[car_id]
+            if car_id in rnd.ready and (flight := self._launch(car_id)) is not None:
+                self._book(flight)
 
     def _transmit(self, flight: _Flight, report: DispatchReport) -> None:
         r = flight.report
@@ -482,6 +531,8 @@ class CarLink:
         r.acked, r.acked_ns = accepted, now
         r.car_received_ns, r.car_rx_us = event.received_at_ns, event.car_rx_us
         self._resolve(st.car_id, event.result.name.lower())
+        if accepted:
+            self._release(st.car_id)
 
     # --- housekeeping ---
     async def _housekeeping(self) -> None:

@@ -46,12 +46,14 @@ from typing import Any
 from udan.edge.calibration import VisionError
 from udan.edge.camera import (
     CameraError,
+    Frame,
     FrameGrabber,
     open_camera,
     yield_process_to_dispatch,
     yield_to_dispatch,
 )
 from udan.edge.geometry import ArenaGeometry
+from udan.edge.overlay import NO_OVERLAY, Annotator, OverlaySettings
 from udan.edge.pauses import freeze_garbage
 from udan.edge.sidecar import (
     MESSAGE_BYTES,
@@ -132,6 +134,20 @@ class Perception(ABC):
 
     sweep_frames: int
     """Frames one sweep of the whole image takes (:attr:`udan.edge.vision.Vision.sweep_frames`)."""
+    overlay: OverlaySettings = NO_OVERLAY
+    """What is drawn onto the frames (:mod:`udan.edge.overlay`): the annotated video, the
+    live page's thumbnails; nothing by default."""
+    video: dict[str, int] | None = None
+    """Once closed, what the annotated video got: frames written, frames skipped."""
+
+    @property
+    @abstractmethod
+    def thumbnail(self) -> bytes | None:
+        """The newest camera thumbnail with the detections drawn (JPEG), when asked for."""
+
+    @abstractmethod
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        """The last step (:func:`udan.edge.overlay.overlay_of`), to be drawn on the frames."""
 
     @property
     @abstractmethod
@@ -179,9 +195,13 @@ class ThreadPerception(Perception):
     """Capture in a thread (:class:`~udan.edge.camera.FrameGrabber`) and vision in a one-thread
     executor, both in the edge process and under its interpreter lock."""
 
-    def __init__(self, grabber: FrameGrabber, vision: Vision) -> None:
+    def __init__(
+        self, grabber: FrameGrabber, vision: Vision, overlay: OverlaySettings = NO_OVERLAY
+    ) -> None:
         self.grabber = grabber
         self.vision = vision
+        self.overlay = overlay
+        self._annotator = Annotator(overlay, vision) if overlay.wanted else None
         self.sweep_frames = vision.sweep_frames
         self._pool = ThreadPoolExecutor(
             1, thread_name_prefix="vision", initializer=yield_to_dispatch
@@ -201,6 +221,20 @@ class ThreadPerception(Perception):
     def ended(self) -> bool:
         return self._analysing is None and self.grabber.ended
 
+    @property
+    def thumbnail(self) -> bytes | None:
+        return None if self._annotator is None else self._annotator.thumbnail
+
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        if self._annotator is not None:
+            self._annotator.step(overlay)
+
+    def _analyse(self, frame: Frame) -> Scene:
+        scene = self.vision.process(frame)
+        if self._annotator is not None:
+            self._annotator.frame(frame, scene)
+        return scene
+
     def wait_ready(self) -> None:
         """Nothing to wait for: the camera was opened and the vision built by the caller."""
 
@@ -217,24 +251,33 @@ class ThreadPerception(Perception):
         while (frame := await self.grabber.next_frame(timeout)) is not None:
             if frame.t_capture_ns >= self._not_before_ns:
                 loop = asyncio.get_running_loop()
-                self._analysing = loop.run_in_executor(self._pool, self.vision.process, frame)
+                self._analysing = loop.run_in_executor(self._pool, self._analyse, frame)
                 return FrameTaken(frame.index, frame.t_capture_ns)
         return None
 
     def close(self) -> None:
         self.grabber.close()
         self._pool.shutdown(wait=True)
+        if self._annotator is not None:
+            self.video = self._annotator.close()
 
 
 # -- in a process of its own ----------------------------------------------------------------
 class ProcessPerception(Perception):
     """The camera and the vision in a perception process of their own."""
 
-    def __init__(self, camera: str, settings: VisionSettings = VisionSettings()) -> None:
+    def __init__(
+        self,
+        camera: str,
+        settings: VisionSettings = VisionSettings(),
+        overlay: OverlaySettings = NO_OVERLAY,
+    ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
         caller goes on; :meth:`wait_ready` waits for that)."""
         self.camera = camera
+        self.overlay = overlay
         self.sweep_frames = 0
+        self._thumbnail: bytes | None = None
         self._captured = 0
         self._dropped_there = 0  # frames the perception process's grabber overwrote
         self._superseded = 0  # scenes superseded here before the loop took them
@@ -246,9 +289,10 @@ class ProcessPerception(Perception):
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
         self._buffer = bytearray(MESSAGE_BYTES)
-        self._sock, self._proc = spawn(
-            "udan.edge.perception", ["--camera", camera, "--vision", settings.to_json()]
-        )
+        args = ["--camera", camera, "--vision", settings.to_json()]
+        if overlay.wanted:
+            args += ["--overlay", overlay.to_json()]
+        self._sock, self._proc = spawn("udan.edge.perception", args)
 
     def wait_ready(self) -> None:
         if self.sweep_frames:
@@ -287,6 +331,14 @@ class ProcessPerception(Perception):
     @property
     def ended(self) -> bool:
         return self._stream_ended and self._scene is None
+
+    @property
+    def thumbnail(self) -> bytes | None:
+        return self._thumbnail
+
+    def annotate(self, overlay: dict[str, Any]) -> None:
+        if self.overlay.wanted and not self._stream_ended:
+            self._send(("step", overlay))
 
     def start(self) -> None:
         self.wait_ready()
@@ -329,7 +381,11 @@ class ProcessPerception(Perception):
         elif kind == "scene":
             if self._scene is not None:
                 self._superseded += 1
-            self._scene = body[0]
+            self._scene = body[0].after(self._scene)
+        elif kind == "thumbnail":
+            self._thumbnail = body[0]
+        elif kind == "video":
+            self.video = body[0]
         elif kind == "error":
             self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
             return
@@ -385,8 +441,10 @@ class ProcessPerception(Perception):
             with contextlib.suppress(OSError, EOFError, pickle.UnpicklingError):
                 while data := self._sock.recv(MESSAGE_BYTES):
                     kind, *body = pickle.loads(data)
-                    if kind in ("taken", "scene", "end"):
+                    if kind in ("taken", "scene", "thumbnail", "end"):
                         self._captured, self._dropped_there = body[-2], body[-1]
+                    if kind == "video":
+                        self.video = body[0]
             self._stream_ended = True
         self._sock.close()
         reap(self._proc)
@@ -399,28 +457,48 @@ class _Server:
     POLL_S = 0.1
     """How often a frame wait wakes to look for a stop (a stop also wakes it at once)."""
 
-    def __init__(self, sock: socket.socket, grabber: FrameGrabber, vision: Vision) -> None:
+    def __init__(
+        self,
+        sock: socket.socket,
+        grabber: FrameGrabber,
+        vision: Vision,
+        annotator: Annotator | None = None,
+    ) -> None:
         self.sock = sock
         self.grabber = grabber
         self.vision = vision
+        self.annotator = annotator
+        self._thumbnail: bytes | None = None  # the last one sent
         self.not_before_ns = 0
         self.unsent = 0
         """Scenes the edge's full socket had no room for (it is not reading: they are old)."""
+        self.unsent_scene: Scene | None = None
+        """The last of them, whose warnings go with the next scene sent."""
         self.stopping = asyncio.Event()
 
-    def send(self, *message: Any) -> None:
-        """A message with the counts so far; a scene the socket has no room for is dropped."""
+    def send(self, *message: Any) -> bool:
+        """A message with the counts so far; a scene the socket has no room for is dropped.
+        Returns whether it was sent."""
         counts = (self.grabber.captured, self.grabber.dropped + self.unsent)
         try:
             self.sock.send(pickle.dumps((*message, *counts)))
         except BlockingIOError:
             self.unsent += message[0] == "scene"
+            return False
+        return True
+
+    def send_scene(self, scene: Scene) -> None:
+        """A scene (:meth:`send`); the warnings of one dropped go with the next."""
+        scene = scene.after(self.unsent_scene)
+        self.unsent_scene = None if self.send("scene", scene) else scene
 
     def control(self, data: bytes) -> None:
         """One message from the edge; an empty one (the edge has gone) is a stop."""
         kind, *body = pickle.loads(data) if data else ("stop",)
         if kind == "skip_before":
             self.not_before_ns = body[0]
+        elif kind == "step" and self.annotator is not None:
+            self.annotator.step(body[0])
         elif kind == "stop":
             self.stopping.set()
 
@@ -452,19 +530,36 @@ class _Server:
                 if frame is None or frame.t_capture_ns < self.not_before_ns:
                     continue
                 self.send("taken", frame.index, frame.t_capture_ns)
-                self.send("scene", self.vision.process(frame))
+                scene = self.vision.process(frame)
+                self.send_scene(scene)
+                if self.annotator is not None:
+                    self._annotate(frame, scene)
         finally:
             stopping.cancel()
             loop.remove_reader(self.sock.fileno())
+
+    def _annotate(self, frame: Frame, scene: Scene) -> None:
+        """The frame to the annotator; its newest thumbnail to the edge if there is a new one
+        (one too large for a message is not sent)."""
+        assert self.annotator is not None
+        self.annotator.frame(frame, scene)
+        thumbnail = self.annotator.thumbnail
+        if thumbnail is not self._thumbnail and len(thumbnail or b"") < MESSAGE_BYTES - 64:
+            self._thumbnail = thumbnail
+            self.send("thumbnail", thumbnail)
 
 
 def _error_kind(err: Exception) -> str:
     return "camera" if isinstance(err, CameraError) else "vision"
 
 
-def serve(fd: int, camera: str, settings: VisionSettings) -> int:
+def serve(
+    fd: int, camera: str, settings: VisionSettings, overlay: OverlaySettings = NO_OVERLAY
+) -> int:
     """The perception process: open ``camera`` and build the vision, say "ready" (or the error,
-    one line), wait for "start", then send scenes until told to stop or the edge goes away."""
+    one line), wait for "start", then send scenes until told to stop or the edge goes away;
+    draw the steps onto the frames when ``overlay`` asks (the video is finished on the way
+    out)."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -474,7 +569,8 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         sock.send(pickle.dumps(("error", _error_kind(err), str(err))))
         return 2
     grabber = FrameGrabber(source)
-    server = _Server(sock, grabber, vision)
+    annotator = Annotator(overlay, vision) if overlay.wanted else None
+    server = _Server(sock, grabber, vision, annotator)
     try:
         freeze_garbage()
         sock.send(pickle.dumps(("ready", vision.sweep_frames)))
@@ -487,6 +583,9 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         yield_process_to_dispatch()
         grabber.start()
         asyncio.run(server.serve())
+        if annotator is not None:
+            server.send("video", annotator.close())
+            annotator = None
         server.send("end")
     except (CameraError, VisionError) as err:
         with contextlib.suppress(OSError):
@@ -496,6 +595,8 @@ def serve(fd: int, camera: str, settings: VisionSettings) -> int:
         return 0
     finally:
         grabber.close()
+        if annotator is not None:
+            annotator.close()
     return 0
 
 
@@ -506,8 +607,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--camera", required=True)
     parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
+    parser.add_argument("--overlay", type=OverlaySettings.from_json, default=NO_OVERLAY)
     args = parser.parse_args(argv)
-    return serve(args.fd, args.camera, args.vision)
+    return serve(args.fd, args.camera, args.vision, args.overlay)
 
 
 if __name__ == "__main__":

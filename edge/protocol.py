@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import secrets
 import struct
 import time
@@ -115,8 +116,19 @@ _HEAD = struct.Struct(">BBBBHII")
 _HEAD_LEN = _HEAD.size
 _TAIL_LEN = 1 + 6 + TAG_BYTES
 _NO_ACTION = 0xFF
+GUIDE_TARGET = 1  # COMMAND ``guide`` flag: the target fields are given
+GUIDE_POSE = 2  # ... the measured pose fields are given
+MAX_HEADING_MRAD = 3142  # round(1000 pi): headings are in -pi..pi
+MAX_POSE_AGE_US = 1_000_000  # a pose older than a car may hold a command is useless
+MAX_DELAY_PCT = 200  # a start delay of at most two cell times
+_TARGET_FIELDS = ("target_x_mm", "target_y_mm", "target_heading_mrad")
+_POSE_FIELDS = ("pose_x_mm", "pose_y_mm", "pose_heading_mrad", "pose_age_us")
+_I16 = 32767
 _LAYOUT: dict[MsgType, tuple[struct.Struct, tuple[str, ...]]] = {
-    MsgType.COMMAND: (struct.Struct(">BQ"), ("action", "deadline_us")),
+    MsgType.COMMAND: (
+        struct.Struct(">BQBhhhhhhIB"),
+        ("action", "deadline_us", "guide", *_TARGET_FIELDS, *_POSE_FIELDS, "delay_pct"),
+    ),
     MsgType.ESTOP: (struct.Struct(">BQ"), ("engage", "deadline_us")),
     MsgType.TIME_REQUEST: (struct.Struct(">Q"), ("t1_ns",)),
     MsgType.HELLO: (struct.Struct(">B"), ("reason",)),
@@ -151,6 +163,70 @@ class NotReady(RuntimeError):
     """A frame was asked for a car that has not joined (or whose clock is not synchronised)."""
 
 
+Pose = tuple[float, float, float]
+"""Arena metres x (along the columns), y (along the rows), heading in radians (0 = -y, growing
+clockwise), as the vision measures them (spec section 3)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Guidance:
+    """What a COMMAND tells a car besides its action: where its move must end (``target``) and,
+    when the camera saw it, where it was (``pose``, in a frame captured at ``captured_ns`` in the
+    edge clock), so its controller drives from where it is to where it should be and errors do
+    not add up (spec section 8)."""
+
+    target: Pose
+    pose: Pose | None = None
+    captured_ns: int = 0
+    delay: float = 0.0
+    """Start the move this share of a cell time after accepting it (a car that enters a cell
+    another car leaves sideways waits for that car's body to clear its path)."""
+
+
+def _mrad(heading: float) -> int:
+    """A heading in milliradians, wrapped into -pi..pi first."""
+    return round(1000 * math.remainder(heading, math.tau))
+
+
+def _mm(metres: float) -> int:
+    return round(1000 * metres)
+
+
+def guide_fields(guidance: Guidance | None, now_ns: int) -> dict[str, int]:
+    """The COMMAND fields of ``guidance`` at edge time ``now_ns``. A pose that cannot be sent
+    (captured more than 1 s ago, or outside the 16-bit millimetre range) is left out; a target
+    outside that range, or a start delay beyond two cell times, is a ``ValueError`` (a bug,
+    not a measurement)."""
+    fields = dict.fromkeys(("guide", *_TARGET_FIELDS, *_POSE_FIELDS, "delay_pct"), 0)
+    if guidance is None:
+        return fields
+    delay = round(100 * guidance.delay)
+    if not 0 <= delay <= MAX_DELAY_PCT:
+        raise ValueError(f"start delay {guidance.delay} cell times outside 0-2")
+    fields["delay_pct"] = delay
+    target = (_mm(guidance.target[0]), _mm(guidance.target[1]))
+    if max(map(abs, target)) > _I16:
+        raise ValueError(f"target {guidance.target[:2]} m outside the 16-bit millimetre range")
+    fields.update(
+        guide=GUIDE_TARGET,
+        target_x_mm=target[0],
+        target_y_mm=target[1],
+        target_heading_mrad=_mrad(guidance.target[2]),
+    )
+    age_us = (now_ns - guidance.captured_ns) // 1000
+    if guidance.pose is not None and 0 <= age_us <= MAX_POSE_AGE_US:
+        pose = (_mm(guidance.pose[0]), _mm(guidance.pose[1]))
+        if max(map(abs, pose)) <= _I16:
+            fields.update(
+                guide=GUIDE_TARGET | GUIDE_POSE,
+                pose_x_mm=pose[0],
+                pose_y_mm=pose[1],
+                pose_heading_mrad=_mrad(guidance.pose[2]),
+                pose_age_us=age_us,
+            )
+    return fields
+
+
 @dataclass(frozen=True, slots=True)
 class Decoded:
     """A structurally valid frame; its tag is not checked yet."""
@@ -179,7 +255,27 @@ class Decoded:
         }
 
 
+def _guide_ok(f: Fields) -> bool:
+    """A COMMAND's target, pose and delay fields (spec section 3): known flags, headings within
+    ±pi, a pose at most 1 s old, the fields of an absent part all zero, a start delay of at
+    most two cell times."""
+    guide = f["guide"]
+    if guide & ~(GUIDE_TARGET | GUIDE_POSE):
+        return False
+    for flag, fields in ((GUIDE_TARGET, _TARGET_FIELDS), (GUIDE_POSE, _POSE_FIELDS)):
+        if not guide & flag and any(f[name] for name in fields):
+            return False
+    headings = (f["target_heading_mrad"], f["pose_heading_mrad"])
+    return (
+        all(abs(h) <= MAX_HEADING_MRAD for h in headings)
+        and f["pose_age_us"] <= MAX_POSE_AGE_US
+        and f["delay_pct"] <= MAX_DELAY_PCT
+    )
+
+
 def _field_error(kind: MsgType, f: Fields) -> str | None:
+    if kind == MsgType.COMMAND and not _guide_ok(f):
+        return "COMMAND target or pose field out of range"
     checks = {
         MsgType.COMMAND: f.get("action", 0) <= Action.STOP,
         MsgType.ESTOP: f.get("engage", 0) in (0, 1),
@@ -266,8 +362,11 @@ def encode(
     """Serialise and sign a frame of any type (the edge sends 0x01-0x05; tests build the rest).
 
     ``key`` is the car's key for handshake frames (session and seq 0), else the session key.
+    A COMMAND's target and pose fields default to zero (not given).
     """
     fmt, names = _LAYOUT[kind]
+    if kind == MsgType.COMMAND:
+        fields = {**guide_fields(None, 0), **fields}
     out = bytearray(_HEAD.pack(PROTOCOL_VERSION, kind, fmt.size, 0, car_id, session, seq))
     out += fmt.pack(*[fields[n] for n in names])
     out.append(1 if kind & 0x80 else 0)
@@ -634,14 +733,21 @@ class EdgeProtocol:
         return max(0, now + validity_ns + best.offset_ns - margin) // 1000
 
     def encode_command(
-        self, car_id: int, action: int, validity_ns: int = DEFAULT_VALIDITY_NS
+        self,
+        car_id: int,
+        action: int,
+        validity_ns: int = DEFAULT_VALIDITY_NS,
+        guidance: Guidance | None = None,
     ) -> bytes:
-        """A signed COMMAND valid for ``validity_ns`` from now (needs a synchronised clock)."""
+        """A signed COMMAND valid for ``validity_ns`` from now (needs a synchronised clock),
+        with its target and measured pose when ``guidance`` is given (the pose's age counted
+        to now)."""
         act = Action(action)
         peer, _ = self._peer_for_send(car_id, need_sync=True)
         now = self._clock()
+        guide = guide_fields(guidance, now)
         deadline = self._deadline_us(peer, now, validity_ns)
-        return self._frame(car_id, MsgType.COMMAND, now, action=act, deadline_us=deadline)
+        return self._frame(car_id, MsgType.COMMAND, now, action=act, deadline_us=deadline, **guide)
 
     def encode_estop(
         self, car_id: int, engage: bool = True, validity_ns: int = DEFAULT_VALIDITY_NS

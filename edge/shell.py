@@ -6,8 +6,10 @@ own process by default (:class:`udan.edge.perception.ProcessPerception`: the cam
 there, compact scenes over a socket read by the loop), so the dispatcher's retransmission timers
 and the scene never wait for each other's turn at the interpreter lock.
 
-When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`). All commands
-of a step leave at once, each valid until the decision + 10 ms.
+When a decision step happens is the core's rule (:class:`udan.edge.core.ControlCore`), and so
+is when cars off their cells' centres are re-centred first (a :class:`udan.edge.core.Recentring`
+round, dispatched like a step). All commands of a step leave at once, each valid until the
+decision + 10 ms.
 
 Whatever ends the run — its duration, Ctrl-C, SIGTERM, the end of a video, or an exception — the
 ``finally`` sends an emergency stop to every joined car before anything is closed.
@@ -17,19 +19,24 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import logging
 import signal
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from udan.edge.core import ControlCore, StepTiming
+from udan.edge.core import ControlCore, Recentring, StepTiming
 from udan.edge.fleet import FleetState
 from udan.edge.link import CarLink
+from udan.edge.live import LiveView
+from udan.edge.overlay import overlay_of
 from udan.edge.pauses import collect_between_steps
 from udan.edge.perception import FrameTaken, Perception
 from udan.edge.telemetry import Telemetry
 from udan.edge.vision import Scene
+
+log = logging.getLogger(__name__)
 
 ESTOP_GRACE_S = 0.05
 #: With no step for this long, collect anyway.
@@ -66,13 +73,16 @@ class EdgeShell:
         core: ControlCore,
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
+        live: LiveView | None = None,
     ) -> None:
         self.perception = perception
         self.link = link
         self.core = core
         self.telemetry = telemetry
         self.config = config
+        self.live = live
         self.stop = asyncio.Event()
+        self._captured_ns: int | None = None  # capture time of the newest scene folded in
         self._collections = 0
         self._longest_collection_ns = 0
         self._collected_ns = time.monotonic_ns()
@@ -93,6 +103,8 @@ class EdgeShell:
         gc.disable()  # collections run between steps (_collect), never inside one
         try:
             self.perception.start()
+            if self.live is not None:
+                self.live.start(self._stop_from_page)
             if play is None:
                 await self.drive(max_steps=None)
             else:
@@ -106,11 +118,14 @@ class EdgeShell:
                 loop.remove_signal_handler(sig)
             await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
             self.perception.close()
+            self._publish(final=True)  # the page shows how the run ended
         report = self.telemetry.report()
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
         perception = self.perception
         report["camera"] = {"captured": perception.captured, "dropped": perception.dropped}
+        if perception.video is not None:
+            report["camera"]["video"] = perception.video
         report["gc"] = {
             "collections": self._collections,
             "longest_ms": round(self._longest_collection_ns / 1e6, 3),
@@ -124,6 +139,7 @@ class EdgeShell:
         step is analysed, the core rehearses the step."""
         while not self.stop.is_set():
             self.perception.skip_before(self.core.not_before_ns)
+            self._publish()
             event = await self._wait_event()
             if event is None:
                 return None
@@ -153,15 +169,23 @@ class EdgeShell:
         return event
 
     def _fold(self, scene: Scene, now: int) -> None:
-        """A scene into the core; telemetry of the frame and of the fleet's changes."""
+        """A scene into the core; telemetry of the frame, of the fleet's changes and of the
+        vision's warnings (each also one line on stderr)."""
+        self._captured_ns = scene.t_capture_ns
+        for warning in scene.warnings:
+            log.warning("vision: %s", warning)
+            self.telemetry.event("vision_warning", message=warning)
         change = self.core.see(scene, self.link.ready_cars(), now)
         for car in change.joined:
             self.telemetry.event("fleet_join", car=car)
         for car in change.left:
             self.telemetry.event("fleet_leave", car=car)
         seen = sum(s.inside for s in scene.cars.values())
+        uncertain = sum(s.inside and s.uncertain for s in scene.cars.values())
         dropped = self.perception.dropped
-        self.telemetry.frame(scene.frame_index, scene.t_capture_ns, now, seen, dropped)
+        self.telemetry.frame(
+            scene.frame_index, scene.t_capture_ns, now, seen, dropped, uncertain, scene.vision_ns
+        )
 
     # ------------------------------------------------------------------ steps
     def _collect(self) -> None:
@@ -186,20 +210,77 @@ class EdgeShell:
             if scene is None:
                 continue
             now = time.monotonic_ns()
-            state = core.due(scene, self.link.move_finished, now)
-            if state is None:
+            due = core.due(scene, self.link.move_finished, now)
+            if due is None:
+                stops = core.guard(scene, self.link.move_finished)
+                if stops:  # a body about to touch another: stopped where it is
+                    report = await self.link.dispatch(stops, time.monotonic_ns())
+                    self.telemetry.event("guard_stop", cars=list(stops), on_time=report.on_time)
+                    continue
                 # the next frame may decide; its "taken" news comes in time to rehearse on only
                 # when this loop wakes within the frame's analysis, so rehearse now as well
                 core.warm_up(self.link.move_finished)
                 continue
-            await self._step(state, now)
-            self._collect()
-            steps += 1
+            if isinstance(due, Recentring):
+                await self._recentre(due)
+            else:
+                await self._step(due, now)
+                self._collect()
+                steps += 1
             core.wait_for_moves(time.monotonic_ns())
         return steps
+
+    async def _recentre(self, recentring: Recentring) -> None:
+        """A re-centring round: its commands, dispatched like a step's, with their record."""
+        decided_ns = time.monotonic_ns()
+        commands, guidance = recentring.commands, recentring.guidance
+        report = await self.link.dispatch(commands, decided_ns, guidance=guidance)
+        self.telemetry.recentre(self.core.recentred(recentring, report))
 
     async def _step(self, state: FleetState, state_ns: int) -> None:
         """One decision and its dispatch, with the step's telemetry."""
         decision, commands, decided_ns = self.core.commands_for(state, state_ns)
-        report = await self.link.dispatch(commands, decided_ns)
-        self.telemetry.step(self.core.dispatched(state, decision, commands, report, state_ns))
+        report = await self.link.dispatch(
+            commands, decided_ns, guidance=decision.guidance, after=decision.after
+        )
+        record = self.core.dispatched(state, decision, commands, report, state_ns)
+        self.telemetry.step(record)
+        if self.live is not None:
+            self.live.step(record)
+        if self.perception.overlay.wanted:  # drawn onto the frames, where they are
+            counts = self.telemetry.counts
+            sent = counts["on_time"] + counts["missed"]
+            share = counts["on_time"] / sent if sent else None
+            self.perception.annotate(overlay_of(record, counts["steps"], share))
+
+    # ------------------------------------------------------------------ the live view
+    def _publish(self, *, final: bool = False) -> None:
+        """A snapshot for the live view when one is due; called where the loop is about to
+        wait for the camera anyway (``final``: at the end of the run, due or not)."""
+        live, now = self.live, time.monotonic_ns()
+        if live is None or not (live.due(now) or final):
+            return
+        core, counts, camera = self.core, self.telemetry, self.perception
+        live.publish(
+            {
+                "t_ns": now,
+                "step": live.last_step,
+                "static": {kind: sorted(cells) for kind, cells in (core.static or {}).items()},
+                "fleet": sorted(core.fleet.slot),
+                "joined": sorted(self.link.ready_cars()),
+                "totals": counts.totals(),
+                "link": self.link.counters(),
+                "camera": {"captured": camera.captured, "dropped": camera.dropped},
+                "frame_age_ns": None if self._captured_ns is None else now - self._captured_ns,
+                "stopped": core.stopped,
+            },
+            camera.thumbnail,
+        )
+
+    def _stop_from_page(self) -> int:
+        """The page's stop-all button: no further step, and an emergency stop to every car
+        through the link (authenticated per car, like any command), counted."""
+        self.core.emergency_stop()
+        sent = self.link.estop_all()
+        self.telemetry.event("remote_estop", cars=sent)
+        return sent

@@ -18,6 +18,7 @@ one JSON object per line, to the telemetry file when one is given.
 
 from __future__ import annotations
 
+import bisect
 import json
 import os
 import sys
@@ -36,15 +37,26 @@ SPANS = (
     "frame_to_received",
 )
 _LOG_MIN_NS, _BINS_PER_DECADE, _DECADES = 1_000, 64, 8  # 1 us .. 100 s
+DEADLINE_NS = 10_000_000
+"""The dispatch deadline: every car has its command within 10 ms of the decision."""
+BUCKETS_NS = (
+    250_000, 500_000, 1_000_000, 2_000_000, 3_000_000, 5_000_000, 7_500_000, DEADLINE_NS,
+    15_000_000, 25_000_000, 50_000_000, 100_000_000, 250_000_000, 1_000_000_000,
+)  # fmt: skip
+"""Upper edges of the cumulative buckets every span also keeps (Prometheus ``le``, for
+``/metrics``): the deadline is one, so "within the deadline" is a bucket, not an estimate."""
 
 
 class Histogram:
-    """Log-binned durations (ns), constant memory; percentiles to about one bin width."""
+    """Log-binned durations (ns), constant memory; percentiles to about one bin width. Also
+    counts in :data:`BUCKETS_NS` and sums, as a Prometheus histogram does."""
 
     def __init__(self) -> None:
         self.counts = np.zeros(_BINS_PER_DECADE * _DECADES + 1, np.int64)
         self.n = 0
         self.max_ns = 0
+        self.sum_ns = 0
+        self.in_bucket = [0] * (len(BUCKETS_NS) + 1)  # the last: above every edge
 
     def add(self, ns: int) -> None:
         """Count one duration."""
@@ -53,6 +65,16 @@ class Histogram:
         self.counts[b] += 1
         self.n += 1
         self.max_ns = max(self.max_ns, ns)
+        self.sum_ns += ns
+        self.in_bucket[bisect.bisect_left(BUCKETS_NS, ns)] += 1
+
+    def cumulative(self) -> dict[str, Any]:
+        """Counts at or below each of :data:`BUCKETS_NS` (and in all), and the sum in seconds."""
+        running, at_most = 0, []
+        for count in self.in_bucket:
+            running += count
+            at_most.append(running)
+        return {"le_ns": BUCKETS_NS, "at_most": at_most, "sum_s": self.sum_ns / 1e9}
 
     def edges_ms(self) -> np.ndarray:
         """Lower edge of every bin, in milliseconds."""
@@ -105,6 +127,8 @@ class Telemetry:
         live_period_s: float = 1.0,
     ) -> None:
         self.spans = {name: Histogram() for name in SPANS}
+        self.vision = Histogram()
+        """Time the vision spent on each frame (in the perception process)."""
         self.recent = {name: deque(maxlen=400) for name in SPANS}
         self.counts: Counter[str] = Counter()
         self.per_car: dict[int, Counter[str]] = {}
@@ -113,6 +137,9 @@ class Telemetry:
         self.memory_start_mb = resident_mb()
         self.memory: list[tuple[float, float]] = []  # (seconds since start, MB) every 10 s
         self.cars = 0
+        self.motion = {"offcentre_mm": 0.0, "heading_deg": 0.0, "seen_offcentre_mm": 0.0}
+        """The largest off-centre distance and heading error of a car a step decided on, and
+        the largest one the camera showed before a re-centring."""
         self._file = open(jsonl, "w", encoding="utf-8") if jsonl else None  # noqa: SIM115
         self._live = live
         self._stream = stream or sys.stdout
@@ -130,11 +157,25 @@ class Telemetry:
         if self._file is not None:
             self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
 
-    def frame(self, index: int, captured_ns: int, state_ns: int, seen: int, dropped: int) -> None:
-        """A frame was turned into cells (``state_ns``: when they were known)."""
+    def frame(
+        self,
+        index: int,
+        captured_ns: int,
+        state_ns: int,
+        seen: int,
+        dropped: int,
+        uncertain: int = 0,
+        vision_ns: int | None = None,
+    ) -> None:
+        """A frame was turned into cells (``state_ns``: when they were known); ``seen`` car
+        markers on the grid, ``uncertain`` of them too near a border to place."""
         self.counts["frames"] += 1
         self.counts["frames_dropped"] = dropped
+        self.counts["sightings_found"] += seen - uncertain
+        self.counts["sightings_uncertain"] += uncertain
         self._span("frame_to_state", state_ns - captured_ns)
+        if vision_ns is not None:
+            self.vision.add(vision_ns)
         self._write(
             {
                 "kind": "frame",
@@ -142,6 +183,8 @@ class Telemetry:
                 "t_ns": captured_ns,
                 "frame_to_state_ns": state_ns - captured_ns,
                 "seen": seen,
+                "uncertain": uncertain,
+                "vision_ns": vision_ns,
             }
         )
 
@@ -154,14 +197,48 @@ class Telemetry:
             "late_executions", "blocked", "stopped", "uncertain", "uncalibrated",
         ):  # fmt: skip
             self.counts[key] += record.get(key, 0)
-        for car, outcome in record.get("outcomes", {}).items():
-            self.per_car.setdefault(int(car), Counter())[outcome] += 1
+        self._outcomes(record)
+        self._worst(record.get("offsets", {}), "offcentre_mm", "heading_deg")
+        for car, sends in record.get("sends", {}).items():
+            if sends:
+                self.per_car[int(car)]["sent"] += 1
+        for car in record.get("late_cars", ()):
+            self.per_car[int(car)]["late"] += 1
         for name in SPANS[1:]:
             self._span(name, record.get(f"{name}_ns"))
         self._write({"kind": "step", **record})
         now_ns = record.get("t_ns", time.monotonic_ns())
         self._maybe_sample_memory(now_ns)
         self._maybe_live(now_ns)
+
+    def recentre(self, record: dict[str, Any]) -> None:
+        """A re-centring round (cars sent back to their cells' centres before a step): its
+        commands count like a step's, and each car re-centred."""
+        self.counts["recentre_rounds"] += 1
+        self.counts["recentred"] += len(record["cars"])
+        for key in ("on_time", "missed", "not_ready", "late_sends", "late_executions"):
+            self.counts[key] += record.get(key, 0)
+        self._outcomes(record)
+        for car in record["cars"]:
+            self.per_car.setdefault(int(car), Counter())["recentred"] += 1
+        self._worst(record["offsets"], "seen_offcentre_mm")
+        self._write({"kind": "recentre", **record})
+
+    def _outcomes(self, record: dict[str, Any]) -> None:
+        for car, outcome in record.get("outcomes", {}).items():
+            self.per_car.setdefault(int(car), Counter())[outcome] += 1
+
+    def _worst(self, offsets: dict[str, list[float]], distance: str, heading: str = "") -> None:
+        """Keep the largest of ``offsets`` (car -> [mm off centre, degrees off facing up])."""
+        for mm, degrees in offsets.values():
+            self.motion[distance] = max(self.motion[distance], mm)
+            if heading:
+                self.motion[heading] = max(self.motion[heading], abs(degrees))
+        if not heading:
+            return
+        self.motion["seen_offcentre_mm"] = max(
+            self.motion["seen_offcentre_mm"], self.motion[distance]
+        )
 
     def _maybe_sample_memory(self, now_ns: int) -> None:
         """Resident memory every ``MEMORY_PERIOD_S``: growth in a run of hours shows here."""
@@ -179,6 +256,8 @@ class Telemetry:
         """An episode finished (HIL/--sim): its returns per car."""
         self.episodes.append(record)
         self._write({"kind": "episode", **record})
+        if self._file is not None:
+            self._file.flush()
 
     def _p99(self, name: str) -> str:
         values = self.recent[name]
@@ -198,11 +277,16 @@ class Telemetry:
         )
 
     def _maybe_live(self, now_ns: int) -> None:
-        if not self._live or now_ns < self._next_live_ns:
+        """The live line, and the telemetry file flushed, once a period (someone may be
+        following the file: ``udan-hil run`` shows its progress from it)."""
+        if now_ns < self._next_live_ns:
             return
-        line = self.live_line(now_ns)
-        self._stream.write(("\r\x1b[K" + line) if self._tty else line + "\n")
-        self._stream.flush()
+        if self._live:
+            line = self.live_line(now_ns)
+            self._stream.write(("\r\x1b[K" + line) if self._tty else line + "\n")
+            self._stream.flush()
+        if self._file is not None:
+            self._file.flush()
         self._next_live_ns = now_ns + self._period_ns
         self._steps_at_live = self.counts["steps"]
 
@@ -216,9 +300,25 @@ class Telemetry:
             "on_time_share": round(self.counts["on_time"] / commands, 6) if commands else None,
             "steps_per_s": round(self.counts["steps"] / duration, 2) if duration else None,
             "spans": {name: h.summary() for name, h in self.spans.items()},
+            "vision": self.vision.summary(),
             "per_car": {str(c): dict(v) for c, v in sorted(self.per_car.items())},
             "episodes": self.episodes,
             "memory_mb": self.memory_summary(),
+            "motion": dict(self.motion),
+        }
+
+    def totals(self) -> dict[str, Any]:
+        """The running totals, for the live view and ``/metrics``: counts, per-car outcomes
+        (``sent``, ``on_time``, ``missed``, ``not_ready``, ``late``), and each span's and the
+        vision's cumulative buckets. What the report will say, so far."""
+        return {
+            "counts": dict(self.counts),
+            "per_car": {str(c): dict(v) for c, v in self.per_car.items()},
+            "histograms": {
+                **{name: h.cumulative() for name, h in self.spans.items()},
+                "vision": self.vision.cumulative(),
+            },
+            "episodes": len(self.episodes),
         }
 
     def memory_summary(self) -> dict[str, float | None]:

@@ -12,7 +12,9 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   small markers by their inner pattern.
 - Tracking (:mod:`udan.edge.tracking`): a known car is looked for only in a window around where its
   last sighting and velocity put it; the windows of cars of similar apparent size are stacked
-  into one image and searched in one call.
+  into one image and searched in one call. Markers too thin for full resolution (far markers
+  under a tilted camera) are searched at twice it, and a still car whose marker fails to decode
+  in a frame is seen by its unchanged look.
 - The rest of the image is swept one tile per frame (4 x 3 tiles overlapping by more than a
   marker), with everything already known painted out first: tracked cars, calibration markers,
   and cell markers that still look as they did when decoded (normalised correlation). So the
@@ -41,6 +43,7 @@ few candidates. This module puts the stages together (and sweeps); each concern 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -55,9 +58,11 @@ from udan.edge.camera import Frame
 from udan.edge.detect import (
     MIN_CONTOUR,
     THRESHOLD_WINDOW,
+    ZOOM,
     MarkerDetector,
+    normalised,
     shape_of,
-    shortest_side,
+    thickness,
 )
 from udan.edge.geometry import (
     CELL_KIND_IDS,
@@ -67,6 +72,7 @@ from udan.edge.geometry import (
     heading_of,
     square,
 )
+from udan.edge.heights import HeightCheck
 from udan.edge.tracking import CarTracker
 
 MASK = 1.15
@@ -82,10 +88,21 @@ OVERLAP_LINES = 12
 extent (a calibration marker, or a car marker printed twice as large, near a tilted camera)."""
 CAR_SCALES = (0.5, 2.0)
 """Car markers are found printed from half to twice the configured side."""
+SMALL_ZOOMS = 4
+"""Candidates of a small-marker sweep window searched again at twice the resolution, at most:
+a car marker too thin to decode at full resolution (under a camera tilted 60 degrees, from
+afar) is found, and a window full of thin seams costs no more than that."""
 SIZE_GRID = 13
 """Arena points per side at which expected marker sizes are computed."""
 SIZE_MARGIN = (0.8, 1.25)
 """Slack on the expected sizes (between grid points, corner rounding, a camera just moved)."""
+HEIGHT_MODULE_PX = 4.0
+"""Car markers with at least this many full-resolution pixels per module are measured for the
+height check: cornerSubPix pulls the corners of smaller ones off by their inner pattern."""
+STILL_SHARE = 0.01
+"""Share of its marker's side a car may move per frame and count as standing still for the
+height check (motion blurs a marker's edges); a car crossing a cell in 200 ms at 40 FPS moves
+a fifth of its side per frame."""
 BUDGET_FLOOR_M = 0.004
 """The least error budget a sighting has (metres): corner refinement and image noise."""
 BUDGET_PIXELS = 1.0
@@ -137,6 +154,17 @@ class Scene:
     cells: dict[str, frozenset[tuple[int, int]]]
     vision_ns: int
     """Time `Vision.process` spent on this frame."""
+    warnings: tuple[str, ...] = ()
+    """One-line warnings about the setup first known in this frame (each comes once): the arena
+    lost or not found (every car held) and found again, a car marker whose size says it is not
+    at the fleet file's height (:mod:`udan.edge.heights`).
+    Whoever drops a scene passes them on to the next (:meth:`after`)."""
+
+    def after(self, dropped: Scene | None) -> Scene:
+        """This scene, carrying the warnings of the scene `dropped` before it."""
+        if dropped is None or not dropped.warnings:
+            return self
+        return dataclasses.replace(self, warnings=dropped.warnings + self.warnings)
 
 
 @dataclass
@@ -189,7 +217,7 @@ class _ExpectedSizes:
         self.side = side_lo
 
     def within(self, box: tuple[int, int, int, int]) -> tuple[float, float, float]:
-        """(shortest contour, longest contour, shortest side as configured) of a car
+        """(shortest contour, longest contour, least thickness as configured) of a car
         marker in the image window `box`, from the grid points it holds (or, when it holds
         none, the nearest)."""
         x0, y0, x1, y1 = box
@@ -206,21 +234,15 @@ class _ExpectedSizes:
 
 
 def _contours(quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Contour lengths (as :func:`udan.edge.detect.shape_of`) and shortest sides of quads
-    (n, 4, 2)."""
+    """Contour lengths (as :func:`udan.edge.detect.shape_of`) and thicknesses
+    (:func:`udan.edge.detect.thickness`) of quads (n, 4, 2)."""
     length = np.abs(np.roll(quads, -1, axis=1) - quads).max(-1).sum(-1)
-    return length, _side_lengths(quads).min(-1)
+    return length, thickness(quads)
 
 
 def _side_lengths(quads: np.ndarray) -> np.ndarray:
     """The four side lengths (n, 4) of quads (n, 4, 2)."""
     return np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=2)
-
-
-def _normalised(patch: np.ndarray) -> np.ndarray:
-    a = patch.astype(np.float32).ravel()
-    a -= a.mean()
-    return a / max(float(np.linalg.norm(a)), 1e-6)
 
 
 class Vision:
@@ -241,6 +263,7 @@ class Vision:
         self.geometry = geometry
         self.marker_heights = {m: h for m, h in (marker_heights or {}).items() if h}
         """Car marker id -> metres above the floor (markers not listed lie on it)."""
+        self.heights = HeightCheck(self.marker_heights, geometry.car_marker_m)
         calibration = None if calibration_file is None else load_calibration(calibration_file)
         self._sweep_tiles = sweep_tiles
         self.detector = MarkerDetector(geometry.dictionary)
@@ -268,6 +291,10 @@ class Vision:
         self._sweeps = 0
         """Sweeps of the whole image completed."""
         self._sizes: _ExpectedSizes | None = None
+        self._arena_missing = False
+        """The scenes have said that there is no arena (:meth:`_arena_news`)."""
+        self._camera_moved = False
+        """A calibration marker shifted: why the arena was lost."""
 
     @property
     def sweep_frames(self) -> int:
@@ -326,19 +353,14 @@ class Vision:
         self._sweeps += self._tile == 0
         (cx0, cy0, cx1, cy1), (x0, y0, x1, y1) = self._tiles[t]
         lo, hi, s, window = self._sweep_bounds(t)
-        x1 -= (x1 - x0) % s
-        y1 -= (y1 - y0) % s
-        roi = img[y0:y1, x0:x1]
-        if s > 1:
-            roi = cv2.resize(roi, ((x1 - x0) // s, (y1 - y0) // s), interpolation=cv2.INTER_AREA)
-        else:
+        roi, off = self.detector.window_image(img, (x0, y0, x1, y1), s)
+        if s == 1:
             roi = roi.copy()  # painted over below
-        off = np.array([x0 + (s - 1) / 2, y0 + (s - 1) / 2])
         known = [k for k in self._known[t] if k.scale == s and self._unchanged(roi, k)]
         masks = [*cars.values(), *self.fit.quads.values(), *(k.quad for k in known)]
         masks += [k.quad for i, ks in enumerate(self._known) if i != t for k in ks]
         self._paint(roi, off, masks, s)
-        ids, quads = self.detector.markers(roi, (lo / s, hi / s), window)
+        ids, quads, _ = self.detector.markers(roi, (lo / s, hi / s), window)
         corners_seen = {}
         for marker, quad in zip(ids, quads, strict=True):
             full = quad * s + off
@@ -350,7 +372,7 @@ class Vision:
                     bx0, by0 = np.maximum(np.floor(quad.min(0)).astype(int) - 1, 0)
                     bx1, by1 = np.ceil(quad.max(0)).astype(int) + 2
                     box = (int(bx0), int(by0), int(bx1), int(by1))
-                    template = _normalised(roi[by0:by1, bx0:bx1])
+                    template = normalised(roi[by0:by1, bx0:bx1])
                     known.append(_Known(marker, full, box, template, s))
             elif self.tracker.is_tracked(marker) and marker not in cars:
                 cars[marker] = full
@@ -377,7 +399,7 @@ class Vision:
         patch = roi[y0:y1, x0:x1]
         if patch.size != known.template.size:
             return False
-        return float(_normalised(patch) @ known.template) >= TEMPLATE_MATCH
+        return float(normalised(patch) @ known.template) >= TEMPLATE_MATCH
 
     @staticmethod
     def _paint(roi: np.ndarray, off: np.ndarray, quads: list[np.ndarray], scale: int) -> None:
@@ -425,7 +447,8 @@ class Vision:
         """One window of the small-marker sweep: car markers printed smaller than configured
         may be too small for the search resolution, so while a car of the fleet is not tracked,
         one window a frame (half a sweep tile) is searched at full resolution for
-        markers between the smallest car marker expected there and the configured size."""
+        markers between the smallest car marker expected there and the configured size, and
+        the thinnest candidates that do not decode there once more at twice it."""
         if not self.calibrated or not self.tracker.missing():
             return
         t = self._small_tile
@@ -436,36 +459,28 @@ class Vision:
         if self.detector.scale_for(small) >= self.detector.s:
             return  # the main sweep reads them
         hi = lo / CAR_SCALES[0] * SIZE_MARGIN[1] / SIZE_MARGIN[0]
-        for marker, quad in self.detector.detect(img, box, (lo, hi), scale=1, side=small):
+        found = self.detector.detect(img, box, (lo, hi), 1, small, zoom_thin=SMALL_ZOOMS)
+        for marker, quad in found:
             if self.tracker.is_tracked(marker) and marker not in cars:
                 cars[marker] = quad
 
     def _check_corner(self, img: np.ndarray) -> dict[int, np.ndarray]:
         """Look for one calibration marker (a different one each frame) where it was last seen,
-        so a moved camera is noticed within four frames rather than a sweep. Returns it if
-        found; a marker not found stops counting for the fit."""
+        so a moved camera is noticed within four frames rather than a sweep; a second time one
+        resolution finer if the first search misses it. Returns it if found; a marker not found
+        stops counting for the fit."""
         check = self.fit.next_check()
         if check is None:
             return {}
         marker, quad = check
         detector = self.detector
         cx, cy, side, length = shape_of(quad)
-        box = detector.box(cx, cy, 2.5 * side)
-        hits = [
-            c for m, c in detector.detect(img, box, (0.8 * length, 1.2 * length)) if m == marker
-        ]
-        if hits:
-            return {marker: hits[0]}
-        if (
-            detector.s > 1
-            and (
-                found := detector.find(
-                    img, marker, (cx, cy), 2.5 * side, length, shortest_side(quad)
-                )
-            )
-            is not None
-        ):
-            return {marker: found}
+        thin = float(thickness(quad))
+        scale = detector.scale_for(thin, zoom=True)
+        for s in dict.fromkeys((scale, 1 if scale > 1 else ZOOM)):
+            found = detector.find(img, marker, (cx, cy), 2.5 * side, length, thin, s)
+            if found is not None:
+                return {marker: found}
         self.fit.lost(marker)
         return {}
 
@@ -475,6 +490,7 @@ class Vision:
         of markers to fit changed."""
         changed, moved = self.fit.observe(marker, corners)
         if moved:
+            self._camera_moved = True
             self._static = [[frozenset(), frozenset()] for _ in self._tiles]
             self._known = [[] for _ in self._tiles]
             self._cells = None
@@ -525,6 +541,58 @@ class Vision:
             )
         return out
 
+    def _arena_news(self) -> str | None:
+        """The line that says the arena is gone (no camera model: no car is placed, the control
+        core holds every car), with why; and the one that says it is back. Gone means lost
+        after a fit, or not found in two sweeps from the start."""
+        # said already (placed, or gone), or still looking for the arena at the start
+        if self.calibrated != self._arena_missing or (self.fit.version == 0 and self._sweeps < 2):
+            return None
+        seen = ", ".join(map(str, sorted(self.fit.corners))) or "none"
+        if self.calibrated:
+            self._arena_missing = self._camera_moved = False
+            return f"arena found again (calibration markers {seen}): cars are placed again"
+        self._arena_missing = True
+        why = "the camera moved, " if self._camera_moved else ""
+        return (
+            f"no arena: {why}calibration markers seen: {seen} (3 of {CORNER_IDS[0]}-"
+            f"{CORNER_IDS[-1]} needed); every car is held until they are"
+        )
+
+    def _check_height(self, img: np.ndarray, index: int) -> str | None:
+        """Measure one car marker a frame (in turn) for the height check
+        (:mod:`udan.edge.heights`): one decoded in this frame, standing still, large enough
+        for its corners to be refined at full resolution; returns its warning if this sighting
+        completes one. Only with a calibration file: without one the camera's height is an
+        estimate, and a lens not described bends the markers' sides."""
+        if self.fit.calibration is None or not self.calibrated:
+            return None  # the camera's height is only estimated, the lens maybe not described
+        thick = HEIGHT_MODULE_PX * self.detector.modules
+        ready = [
+            (m, tr)
+            for m, tr in self.tracker.tracks.items()
+            if tr.index == index
+            and m != TARGET_ID
+            and m not in self.heights.done
+            and m not in self.tracker.unmoved
+            and tr.thickness >= thick
+            and math.hypot(*tr.velocity) < STILL_SHARE * tr.shape[2]
+        ]
+        if not ready:
+            return None
+        marker, tr = ready[index % len(ready)]
+        camera_height = self.fit.camera_height()
+        refined = self.detector.refine(img, tr.corners)
+        side = float(
+            _side_lengths(self.fit.to_arena(refined, self.heights.told(marker))[None]).mean()
+        )
+        r, t = self.fit.pose
+        foot = -(r.T @ t)[:2]
+        g = self.geometry
+        grid = np.array([[0.0, 0.0], [g.width_m, 0.0], [g.width_m, g.height_m], [0.0, g.height_m]])
+        reach = float(np.linalg.norm(grid - foot, axis=1).max())
+        return self.heights.add(marker, side, camera_height, reach)
+
     def budgets_at_cells(self) -> np.ndarray:
         """(rows, cols): the error budget (metres) of a car marker on the floor at each cell's
         centre, the worse of two headings; what `udan-calibrate check` shows a lab."""
@@ -567,13 +635,14 @@ class Vision:
         swept = self._sweep(img, cars)
         self._sweep_small(img, cars)
         checked = self._check_corner(img)
-        self.tracker.update(cars, frame.index)
+        self.tracker.update(cars, frame.index, img)
         changed = False
         for marker, quad in [*swept.items(), *checked.items()]:
             changed |= self._observe_corner(marker, self.detector.refine(img, quad))
         if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
             self.fit.fit()
         sightings = self._sightings(frame.index)
+        warnings = (self._arena_news(), self._check_height(img, frame.index))
         cells = self._static_cells()
         target = sightings.pop(TARGET_ID, None)
         if target is not None and target.inside:
@@ -585,4 +654,5 @@ class Vision:
             cars=sightings,
             cells=cells,
             vision_ns=time.perf_counter_ns() - t0,
+            warnings=tuple(w for w in warnings if w is not None),
         )

@@ -74,7 +74,12 @@ class CanCar:
         self.bus = bus
         self.faults = Faults.from_mapping(spec.faults)
         self.drive = Drive(
-            spec.car_id, world or GridWorld(), spec.start, timing.cell_time_s, self.faults
+            spec.car_id,
+            world or GridWorld(),
+            spec.start,
+            timing.cell_time_s,
+            self.faults,
+            accel_share=timing.accel_share,
         )
         self.firmware = CarFirmware.for_car(
             spec,

@@ -34,6 +34,7 @@ REJECT_REASONS = (
 TIME_WINDOW_US = 60_000_000  # MAVLink 2 signing's one-minute window
 MAX_VALIDITY_US = 1_000_000  # a deadline further ahead than this is refused as bad_time
 WATCHDOG_US = 300_000
+CELL_TIME_US = 200_000  # a start delay is counted in cell times (section 3)
 DUPLICATE_CACHE = 16
 SEQ_MAX = (1 << 32) - 1
 RENEW_AT = SEQ_MAX - (1 << 16)  # from here on the car asks for a new session
@@ -88,15 +89,17 @@ class Telemetry:
 class Outcome:
     """The verdict on one incoming frame, the frames to send back, and the order for the motors.
 
-    ``motor`` is ``(seq, action)`` of an accepted command (``wire.STOP_ACTION`` stops at once);
-    ``halt`` says an emergency stop was engaged: stop the motors now. Verdict ``joined``: a new
-    session is open, and the driver confirms it with a STATUS at once (section 6).
+    ``motor`` is ``(seq, action)`` of an accepted command (``wire.STOP_ACTION`` stops at once),
+    ``guidance`` its target and measured pose if it carries them; ``halt`` says an emergency
+    stop was engaged: stop the motors now. Verdict ``joined``: a new session is open, and the
+    driver confirms it with a STATUS at once (section 6).
     """
 
     verdict: str
     replies: tuple[bytes, ...] = ()
     motor: tuple[int, int] | None = None
     halt: bool = False
+    guidance: wire.Guidance | None = None
 
 
 class _Session:
@@ -146,6 +149,7 @@ class CarCore:
         *,
         watchdog_us: int = WATCHDOG_US,
         max_validity_us: int = MAX_VALIDITY_US,
+        cell_time_us: int = CELL_TIME_US,
         nonce: Callable[[], bytes] = _fresh_nonce,
     ) -> None:
         if len(key) != wire.KEY_LEN:
@@ -153,6 +157,7 @@ class CarCore:
         self.car_id = car_id
         self.marker = marker
         self.watchdog_us = watchdog_us
+        self.cell_time_us = cell_time_us
         self.max_validity_us = max_validity_us
         self.counters = Counters()
         self._key = key
@@ -339,10 +344,12 @@ class CarCore:
             return self._accept(s, f, now_us, halt=engaging)
         if self.estopped and not stopping:
             return self._reject("estopped", self._ack(s, f, "estopped", now_us))
-        self._fed_at = now_us
+        # the watchdog counts from when the command's move starts (after its start delay)
+        self._fed_at = now_us + f.payload["delay_pct"] * self.cell_time_us // 100
         self.watchdog_tripped = False
         self._moved_in = s.id
-        return self._accept(s, f, now_us, motor=(f.seq, f.payload["action"]))
+        motor = (f.seq, f.payload["action"])
+        return self._accept(s, f, now_us, motor=motor, guidance=wire.guidance(f.payload))
 
     def _handshake(self, f: wire.Frame, now_us: int) -> Outcome:
         """HELLO and ACCEPT: signed with the car's own key, fresh only if they echo our nonce."""
@@ -376,6 +383,7 @@ class CarCore:
         *,
         motor: tuple[int, int] | None = None,
         halt: bool = False,
+        guidance: wire.Guidance | None = None,
     ) -> Outcome:
         self.counters.accepted += 1
         s.recent[f.seq] = f.tag
@@ -383,7 +391,7 @@ class CarCore:
             s.recent.popitem(last=False)
         if replies is None:
             replies = self._ack(s, f, "accepted", now_us)
-        return Outcome("accepted", replies, motor, halt)
+        return Outcome("accepted", replies, motor, halt, guidance)
 
     def next_wakeup_us(self) -> int | None:
         """Car time at which ``poll`` must run next (the watchdog expiry), if any."""

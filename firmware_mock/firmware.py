@@ -32,13 +32,16 @@ class CarTiming:
     """A mock car's time constants (spec sections 6 and 8), the same for every transport.
 
     Defaults are the spec's: a cell in 200 ms, under the 300 ms watchdog so a kept-alive car is
-    never cut mid-move; STATUS every 100 ms; JOIN every 250 ms until the edge answers.
+    never cut mid-move; STATUS every 100 ms; JOIN every 250 ms until the edge answers; constant
+    speed over a move (``accel_share`` 0; real cars accelerate and brake, see the HIL's motion
+    levels).
     """
 
     cell_time_s: float = 0.2
     watchdog_s: float = WATCHDOG_US / 1e6
     status_period_s: float = 0.1
     join_period_s: float = 0.25
+    accel_share: float = 0.0
 
 
 DEFAULT_TIMING = CarTiming()
@@ -90,7 +93,11 @@ class CarFirmware:
     ) -> CarFirmware:
         """The firmware of one fleet car: its core keyed and numbered from ``spec``."""
         core = CarCore(
-            spec.car_id, spec.key, spec.marker, watchdog_us=round(timing.watchdog_s * 1e6)
+            spec.car_id,
+            spec.key,
+            spec.marker,
+            watchdog_us=round(timing.watchdog_s * 1e6),
+            cell_time_us=round(timing.cell_time_s * 1e6),
         )
         return cls(core, motors, transmit, faults=faults, edge=edge, timing=timing, seed=seed)
 
@@ -204,7 +211,7 @@ class CarFirmware:
         if out.halt:
             self.motors.stop(sl.STOP_ESTOP)
         if out.motor is not None:
-            self.motors.move(*out.motor)
+            self.motors.move(*out.motor, out.guidance)
             wake = self.core.next_wakeup_us()
             if wake is not None:
                 self._schedule("watchdog", (wake - self.now_us()) / 1e6, self._watchdog)

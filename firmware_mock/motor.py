@@ -1,9 +1,19 @@
-"""The motor controller mock: executes one grid move at a time in a simulated world.
+"""The motor controller mock: drives one move at a time, from where it believes it is to where
+the edge wants it, in a simulated world.
 
-``Drive`` is the controller's motion logic (a move takes ``cell_time_s``; the pose is updated when
-the move ends; a stop cancels the move in progress, so the car stays on its cell). Where a move
-ends is decided by a ``World``: the default is a car alone on a 9x9 grid under the shared rules
-(``udan.envs.rules``); the HIL world plugs in its own to add other cars and obstacles.
+``Drive`` is the controller's motion logic. It keeps a belief of its pose (arena metres and
+radians: its odometry) and, for each command, plans a straight move from that belief to the
+command's target over a trapezoidal speed profile: a cell in ``cell_time_s``, a shorter
+correction in less (spec section 8). A command that carries the car's measured pose (the
+camera's, with that frame's age) first corrects the belief at the time the frame was taken, so
+its move starts from where the car really is and errors do not add up; corrections smaller than
+the controller's deadband are not driven (encoder resolution and camera noise), so an exact car
+drives exactly the grid moves. A command without a target drives the action's grid move from
+the belief (protocol section 3). A stop cancels the move in progress where the car is.
+
+Where a move really ends is the ``World``'s: the default is a car alone on a 9x9 grid that goes
+exactly where it is told (a move off the grid is a wait); the HIL world plugs in its own, with
+the other cars, the obstacles and a motion model that makes real cars' errors.
 
 ``MotorController`` puts a ``Drive`` behind the serial link (COBS + CRC-16 frames, spec section
 9), and ``SerialMotors`` is the ESP8266's end of that link. Both ends read their file descriptor
@@ -13,67 +23,143 @@ from the asyncio loop, so a pty pair carries real bytes between them.
 from __future__ import annotations
 
 import asyncio
+import math
 import os
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import serial
+from numpy.typing import ArrayLike
 
-from udan.envs.rules import ACTION_DELTAS, WAIT, in_bounds
+from udan.envs.rules import ACTION_DELTAS, WAIT
 from udan.firmware_mock import serial_link as sl
+from udan.firmware_mock import wire
 from udan.firmware_mock.core import Telemetry
 from udan.firmware_mock.faults import Faults
 from udan.firmware_mock.wire import STOP_ACTION
 
-Pose = tuple[int, int]
+Cell = tuple[int, int]
 BATTERY_FULL_MV = 8200
 BATTERY_LOW_MV = 7000
 DRAIN_PER_CELL_MV = 2
+DEADBAND_M = 0.005
+"""Belief corrections and move corrections smaller than this are not driven (metres): the
+camera's position noise (2.5 mm at most in the HIL) is not chased."""
+DEADBAND_RAD = math.radians(3.0)
+"""... nor heading corrections smaller than this (the camera's heading noise: 0.4 degrees
+median, 2.8 at the 99th percentile, 3.5 at most on the HIL's 12 cm markers)."""
+QUARTER_TURN_CELLS = 1.0
+"""A quarter turn takes as long as a cell's move."""
+
+
+class Pose(NamedTuple):
+    """Arena metres (x along the columns, y along the rows) and heading (radians, 0 facing -y,
+    clockwise), as the camera and the protocol give them."""
+
+    x: float
+    y: float
+    heading: float
+
+    def shifted(self, dx: float, dy: float, dh: float) -> Pose:
+        return Pose(self.x + dx, self.y + dy, self.heading + dh)
+
+
+def wrap(angle: float) -> float:
+    """An angle in -pi..pi."""
+    return math.remainder(angle, math.tau)
+
+
+def travelled(tau: ArrayLike, accel_share: float) -> np.ndarray:
+    """Share of a move covered after share ``tau`` of its time (a number or an array), for a
+    trapezoidal speed profile: constant acceleration for ``accel_share`` of the time, constant
+    speed, as long braking. ``accel_share`` 0 is constant speed (the exact level's cars)."""
+    tau = np.clip(tau, 0.0, 1.0)
+    a = accel_share
+    if a <= 0:
+        return tau
+    peak = 1 / (1 - a)
+    speeding = peak * tau * tau / (2 * a)
+    braking = 1 - peak * (1 - tau) ** 2 / (2 * a)
+    return np.where(tau < a, speeding, np.where(tau > 1 - a, braking, peak * (tau - a / 2)))
+
+
+@dataclass(frozen=True, slots=True)
+class Trajectory:
+    """A straight move from ``start`` to ``end`` begun at ``started_ns`` (``time.monotonic_ns``,
+    one clock for every process of the machine), lasting ``duration_ns`` on the speed profile
+    of ``accel_share``: the controller's plan in its belief, or the world's truth."""
+
+    start: Pose
+    end: Pose
+    started_ns: int
+    duration_ns: int
+    accel_share: float = 0.0
+
+    def at(self, now_ns: int) -> Pose:
+        """Where the move is at ``now_ns`` (the start before it, the end after it)."""
+        f = float(travelled((now_ns - self.started_ns) / self.duration_ns, self.accel_share))
+        (x0, y0, h0), (x1, y1, h1) = self.start, self.end
+        return Pose(x0 + f * (x1 - x0), y0 + f * (y1 - y0), h0 + f * wrap(h1 - h0))
+
+    def shifted(self, dx: float, dy: float, dh: float) -> Trajectory:
+        return replace(self, start=self.start.shifted(dx, dy, dh), end=self.end.shifted(dx, dy, dh))
 
 
 class World(Protocol):
-    """Decides where a move ends; told when a move starts and when one is cut short."""
+    """Where the car really is: told when a move starts, when its time is up, and when one is
+    cut short."""
 
-    def begin(self, car_id: int, pose: Pose, action: int) -> None:
-        """A move of ``car_id`` from ``pose`` started (it ends after the cell time)."""
+    cell_m: float
+    """Side of a grid cell (metres): what a grid move drives."""
+
+    def begin(self, car_id: int, plan: Trajectory) -> None:
+        """The car started driving ``plan`` (its own belief of the move)."""
         ...
 
     def abort(self, car_id: int) -> None:
-        """The move in progress was cut (stop, watchdog, estop): the car stays where it was."""
+        """The move in progress was cut (stop, watchdog, estop): the car stays where it is."""
         ...
 
-    def move(self, car_id: int, pose: Pose, action: int) -> Pose:
-        """The cell ``car_id`` ends on after ``action`` from ``pose``; called when the move's
-        time is up."""
+    def end(self, car_id: int) -> bool:
+        """The move's time is up: True if it happened, False if the arena's rules refused it
+        (the car is back where it started)."""
         ...
 
 
 @dataclass
 class GridWorld:
-    """A car alone on a ``height`` x ``width`` grid: moves off the edge are waits."""
+    """A car alone on a ``height`` x ``width`` grid that goes exactly where it is told; a move
+    off the grid does not happen."""
 
     height: int = 9
     width: int = 9
+    cell_m: float = 2.8 / 9
+    _ends: dict[int, Pose] = field(default_factory=dict, repr=False)
 
-    def begin(self, car_id: int, pose: Pose, action: int) -> None:
-        """Alone on the grid, nothing to reserve."""
+    def begin(self, car_id: int, plan: Trajectory) -> None:
+        """Remember where the move goes."""
+        self._ends[car_id] = plan.end
 
     def abort(self, car_id: int) -> None:
-        """Alone on the grid, nothing to release."""
+        """Forget the move."""
+        self._ends.pop(car_id, None)
 
-    def move(self, car_id: int, pose: Pose, action: int) -> Pose:
-        """The rules' delta for ``action``, unless it leaves the grid."""
-        dest = np.asarray(pose, dtype=np.int64) + ACTION_DELTAS[action]
-        return (int(dest[0]), int(dest[1])) if in_bounds(dest, self.height, self.width) else pose
+    def end(self, car_id: int) -> bool:
+        """Whether the move ends on the grid."""
+        end = self._ends.pop(car_id)
+        row, col = math.floor(end.y / self.cell_m), math.floor(end.x / self.cell_m)
+        return 0 <= row < self.height and 0 <= col < self.width
 
 
 class Motors(Protocol):
     """What the firmware drives: the controller itself, or the serial link to it."""
 
-    def move(self, seq: int, action: int) -> None:
-        """Start (or queue behind the current move) the move of command ``seq``."""
+    def move(self, seq: int, action: int, guidance: wire.Guidance | None = None) -> None:
+        """Start (or queue behind the current move) the move of command ``seq``; its target
+        and measured pose (the pose's age counted to now) if the command carried them."""
         ...
 
     def stop(self, reason: int) -> None:
@@ -85,22 +171,37 @@ class Motors(Protocol):
         ...
 
 
+@dataclass(slots=True)
+class _Order:
+    seq: int
+    action: int
+    target: Pose | None
+    delay: float = 0.0  # start this share of a cell time after the order starts
+
+
 class Drive:
-    """Executes moves in a ``World`` with a time per cell; one queued move at most (the newest)."""
+    """Executes moves in a ``World``: one at a time, one queued at most (the newest).
+
+    ``accel_share`` is the speed profile the controller drives (0: constant speed)."""
 
     def __init__(
         self,
         car_id: int,
         world: World,
-        pose: Pose,
+        start: Cell,
         cell_time_s: float,
         faults: Faults,
         on_change: Callable[[], None] = lambda: None,
+        *,
+        accel_share: float = 0.0,
     ) -> None:
         self.car_id = car_id
         self.world = world
-        self.pose = pose
+        self.cell_m = world.cell_m
+        self.belief = Pose((start[1] + 0.5) * self.cell_m, (start[0] + 0.5) * self.cell_m, 0.0)
+        """Where the controller believes it is at rest (the start of the move in progress)."""
         self.cell_time_s = cell_time_s
+        self.accel_share = accel_share
         self.faults = faults
         self.on_change = on_change
         self.battery_mv = BATTERY_FULL_MV
@@ -109,15 +210,26 @@ class Drive:
         self.executed = 0
         self.aborted = 0
         self.stalls = 0
-        self._current: tuple[int, int] | None = None
-        self._queued: tuple[int, int] | None = None
+        self.corrections = 0
+        """Commands whose measured pose moved the belief (past the deadband)."""
+        self._current: _Order | None = None
+        self._plan: Trajectory | None = None
+        self._queued: _Order | None = None
         self._timer: asyncio.TimerHandle | None = None
+        self._cut_at: float | None = None
+        self._stuck = False  # the move in progress does not happen (a stuck wheel)
+
+    @property
+    def pose(self) -> Cell:
+        """The cell the controller believes it is in (at the start of a move in progress)."""
+        return math.floor(self.belief.y / self.cell_m), math.floor(self.belief.x / self.cell_m)
 
     def telemetry(self) -> Telemetry:
-        """The controller's own view (its pose is its odometry, which is exact in the mock)."""
+        """The controller's own view: its believed cell, battery, motion."""
+        row, col = self.pose
         return Telemetry(
-            row=self.pose[0],
-            col=self.pose[1],
+            row=row,
+            col=col,
             battery_mv=self.battery_mv,
             moving=self._current is not None,
             stalled=self.stalled,
@@ -125,57 +237,134 @@ class Drive:
             done_seq=self.done_seq,
         )
 
-    def move(self, seq: int, action: int) -> None:
-        """Start the move, or queue it (replacing an older queued one) while another runs."""
+    def believed_at(self, t_ns: int) -> Pose:
+        """Where the controller believes it was at ``t_ns`` (on the move in progress, or at
+        rest before it)."""
+        plan = self._plan
+        return self.belief if plan is None or t_ns <= plan.started_ns else plan.at(t_ns)
+
+    def move(self, seq: int, action: int, guidance: wire.Guidance | None = None) -> None:
+        """Correct the belief with the command's measured pose, then start the move, or queue
+        it (replacing an older queued one) while another runs."""
         if action == STOP_ACTION:
             self.stop(sl.STOP_COMMAND)
             self.done_seq = seq
             self.on_change()
             return
+        order = _Order(seq, action, None)
+        if guidance is not None:
+            if guidance.pose is not None:
+                now = time.monotonic_ns()
+                self._correct(Pose(*guidance.pose), now - guidance.pose_age_us * 1000)
+            if guidance.target is not None:
+                order.target = Pose(*guidance.target)
+            order.delay = guidance.delay
         if self._current is not None:
-            self._queued = (seq, action)
+            self._queued = order
             return
-        self._start(seq, action)
+        self._start(order)
 
-    def _start(self, seq: int, action: int) -> None:
-        self._current = (seq, action)
-        if action == WAIT:
+    def cut_next_move(self, share: float) -> None:
+        """Test hook (the HIL's ``cut`` fault): the next move stops after ``share`` of its time,
+        where the car then is, as a wheel blocked for a moment would leave it."""
+        self._cut_at = share
+
+    def _correct(self, measured: Pose, taken_ns: int) -> None:
+        """Shift the belief by how far the camera saw it off when the frame was taken."""
+        then = self.believed_at(taken_ns)
+        dx, dy = measured.x - then.x, measured.y - then.y
+        dh = wrap(measured.heading - then.heading)
+        if math.hypot(dx, dy) <= DEADBAND_M and abs(dh) <= DEADBAND_RAD:
+            return
+        self.corrections += 1
+        self.belief = self.belief.shifted(dx, dy, dh)
+        if self._plan is not None:
+            self._plan = self._plan.shifted(dx, dy, dh)
+
+    def _plan_for(self, order: _Order, now_ns: int) -> Trajectory | None:
+        """The move from the belief to the order's target (or its grid move), starting after
+        the order's delay, or None when there is nothing to drive. A target within the deadband
+        of the grid move drives the grid move itself, in exactly one cell time."""
+        here = self.belief
+        now_ns += round(order.delay * self.cell_time_s * 1e9)
+        d_row, d_col = (int(v) for v in ACTION_DELTAS[order.action])
+        grid = Pose(here.x + d_col * self.cell_m, here.y + d_row * self.cell_m, here.heading)
+        end = grid if order.target is None else order.target
+        off = math.hypot(end.x - grid.x, end.y - grid.y)
+        if off <= DEADBAND_M and abs(wrap(end.heading - grid.heading)) <= DEADBAND_RAD:
+            if order.action == WAIT:
+                return None
+            return Trajectory(here, grid, now_ns, round(self.cell_time_s * 1e9), self.accel_share)
+        cells = math.hypot(end.x - here.x, end.y - here.y) / self.cell_m
+        turns = abs(wrap(end.heading - here.heading)) / (math.pi / 2) * QUARTER_TURN_CELLS
+        # a cell takes a cell time; a shorter move is limited by the acceleration (time grows
+        # as the square root of the distance), a longer one by the top speed
+        span = max(cells, math.sqrt(cells), turns, math.sqrt(turns))
+        return Trajectory(here, end, now_ns, round(self.cell_time_s * span * 1e9), self.accel_share)
+
+    def _start(self, order: _Order) -> None:
+        self._current = order
+        plan = self._plan_for(order, time.monotonic_ns())
+        if plan is None:
             self._finish()
             return
-        self.world.begin(self.car_id, self.pose, action)
-        self._timer = asyncio.get_running_loop().call_later(self.cell_time_s, self._finish)
+        self._plan = plan
+        self._stuck = self.faults.stuck_wheel
+        if not self._stuck:
+            self.world.begin(self.car_id, plan)
+        loop = asyncio.get_running_loop()
+        share, self._cut_at = self._cut_at, None
+        delay_s = order.delay * self.cell_time_s
+        if share is None:
+            self._timer = loop.call_later(delay_s + plan.duration_ns / 1e9, self._finish)
+        else:
+            cut_s = delay_s + share * plan.duration_ns / 1e9
+            self._timer = loop.call_later(cut_s, self._finish, True)
         self.on_change()
 
-    def _finish(self) -> None:
-        assert self._current is not None
-        seq, action = self._current
-        self._current = self._timer = None
-        self.stalled = self.faults.stuck_wheel and action != WAIT
-        if self.stalled:
+    def _finish(self, cut: bool = False) -> None:
+        order, plan = self._current, self._plan
+        assert order is not None
+        self._current = self._plan = self._timer = None
+        self.stalled = plan is not None and (self._stuck or cut)
+        if plan is None:
+            self.executed += 1
+        elif self._stuck:
             self.stalls += 1
+        elif cut:
+            self.stalls += 1
+            self.belief = plan.at(time.monotonic_ns())
             self.world.abort(self.car_id)
         else:
-            if action != WAIT:
-                self.pose = self.world.move(self.car_id, self.pose, action)
+            moved = self.world.end(self.car_id)
+            self.belief = plan.end if moved else plan.start
+            if moved and order.action != WAIT:
                 self.battery_mv = max(0, self.battery_mv - DRAIN_PER_CELL_MV)
             self.executed += 1
-        self.done_seq = seq
+        self.done_seq = order.seq
         queued, self._queued = self._queued, None
         self.on_change()
         if queued is not None:
-            self._start(*queued)
+            self._start(queued)
 
     def stop(self, reason: int) -> None:
-        """Cut the motors: the move in progress is abandoned where it started."""
-        self._queued = None
+        """Cut the motors: the move in progress ends where the car is, the queued one is
+        dropped; both count as done (neither will run)."""
+        queued, self._queued = self._queued, None
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        if self._current is not None:
-            self._current = None
+        order, plan = self._current, self._plan
+        if order is None:
+            return
+        self._current = self._plan = None
+        self.done_seq = (queued or order).seq
+        if plan is not None:
             self.aborted += 1
-            self.world.abort(self.car_id)
-            self.on_change()
+            if not self._stuck:
+                self.belief = plan.at(time.monotonic_ns())
+                self.world.abort(self.car_id)
+        self.on_change()
 
 
 class MotorController:
@@ -196,7 +385,7 @@ class MotorController:
             return
         for kind, f in self.deframer.messages(data, (sl.MOVE, sl.STOP)):
             if kind == sl.MOVE:
-                self.drive.move(f["seq"], f["action"])
+                self.drive.move(f["seq"], f["action"], wire.guidance(f))
             else:
                 self.drive.stop(f["reason"])
 
@@ -233,9 +422,11 @@ class SerialMotors:
         self._telemetry = Telemetry()
         asyncio.get_running_loop().add_reader(port.fileno(), self._readable)
 
-    def move(self, seq: int, action: int) -> None:
-        """MOVE over the line (a STOP command too, so its seq is reported as done)."""
-        self.port.write(sl.frame(sl.encode_message(sl.MOVE, seq=seq, action=action)))
+    def move(self, seq: int, action: int, guidance: wire.Guidance | None = None) -> None:
+        """MOVE over the line (a STOP command too, so its seq is reported as done), with the
+        command's target and measured pose."""
+        fields = wire.guide_payload(guidance)
+        self.port.write(sl.frame(sl.encode_message(sl.MOVE, seq=seq, action=action, **fields)))
 
     def stop(self, reason: int) -> None:
         """STOP over the line."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Collection
 
-from udan.firmware_mock.wire import STOP_ACTION
+from udan.firmware_mock.wire import GUIDE_FIELDS, GUIDE_POSE, GUIDE_TARGET, STOP_ACTION
 
 MAX_BODY = 253  # one COBS block, so a frame is never longer than 256 bytes on the line
 
@@ -142,20 +142,23 @@ MOVE, STOP, STATE = 0x10, 0x11, 0x90
 STOP_COMMAND, STOP_WATCHDOG, STOP_ESTOP, STOP_BOOT = range(4)
 STATE_MOVING, STATE_STALL, STATE_LOW_BATTERY = 1, 2, 4
 _MESSAGES: dict[int, tuple[struct.Struct, tuple[str, ...]]] = {
-    MOVE: (struct.Struct(">IB"), ("seq", "action")),
+    MOVE: (struct.Struct(">IBBhhhhhhIB"), ("seq", "action", *GUIDE_FIELDS)),
     STOP: (struct.Struct(">B"), ("reason",)),
     STATE: (struct.Struct(">hhHBI"), ("row", "col", "battery_mv", "flags", "done_seq")),
 }
 
 
 def encode_message(kind: int, **fields: int) -> bytes:
-    """A car-internal message body."""
+    """A car-internal message body; a MOVE's target and pose fields default to none given."""
     fmt, names = _MESSAGES[kind]
+    if kind == MOVE:
+        fields = {**dict.fromkeys(GUIDE_FIELDS, 0), **fields}
     return bytes([kind]) + fmt.pack(*(fields[n] for n in names))
 
 
 def decode_message(body: bytes) -> tuple[int, dict[str, int]]:
-    """``(kind, fields)``; ``ValueError`` for an unknown id, a wrong length or a MOVE action > 5."""
+    """``(kind, fields)``; ``ValueError`` for an unknown id, a wrong length, a MOVE action > 5
+    or unknown MOVE guide flags."""
     if not body or body[0] not in _MESSAGES:
         raise ValueError("unknown serial message")
     fmt, names = _MESSAGES[body[0]]
@@ -164,4 +167,6 @@ def decode_message(body: bytes) -> tuple[int, dict[str, int]]:
     fields = dict(zip(names, fmt.unpack_from(body, 1), strict=True))
     if body[0] == MOVE and fields["action"] > STOP_ACTION:
         raise ValueError(f"MOVE action {fields['action']} out of range")
+    if body[0] == MOVE and fields["guide"] & ~(GUIDE_TARGET | GUIDE_POSE):
+        raise ValueError(f"MOVE guide flags 0x{fields['guide']:02x} unknown")
     return body[0], fields

@@ -52,7 +52,12 @@ class MockCar(asyncio.DatagramProtocol):
         port = serial.Serial(os.ttyname(slave), baudrate=BAUD, timeout=0)
         os.close(slave)
         drive = Drive(
-            self.spec.car_id, self.world, self.spec.start, self.timing.cell_time_s, self.faults
+            self.spec.car_id,
+            self.world,
+            self.spec.start,
+            self.timing.cell_time_s,
+            self.faults,
+            accel_share=self.timing.accel_share,
         )
         self.controller = MotorController(master, drive)
         self.esp_serial = SerialMotors(port)

@@ -42,9 +42,22 @@ TYPE_NAMES = {
     TIME_RESP: "time_response",
 }
 
+# COMMAND guide flags (section 3): which of the target and the measured pose are given.
+GUIDE_TARGET, GUIDE_POSE = 1, 2
+HEADING_LIMIT_MRAD = 3142  # pi, rounded to the milliradian
+POSE_AGE_LIMIT_US = 1_000_000
+DELAY_LIMIT_PCT = 200  # two cell times
+GUIDE_FIELDS = (
+    "guide", "target_x_mm", "target_y_mm", "target_heading_mrad",
+    "pose_x_mm", "pose_y_mm", "pose_heading_mrad", "pose_age_us", "delay_pct",
+)  # fmt: skip
+
 # Payload layout per type: a struct and the names of its fields, in order.
 _PAYLOADS: dict[int, tuple[struct.Struct, tuple[str, ...]]] = {
-    COMMAND: (struct.Struct(">BQ"), ("action", "deadline_us")),
+    COMMAND: (
+        struct.Struct(">BQBhhhhhhIB"),
+        ("action", "deadline_us", *GUIDE_FIELDS),
+    ),
     ESTOP: (struct.Struct(">BQ"), ("engage", "deadline_us")),
     TIME_REQ: (struct.Struct(">Q"), ("t1_ns",)),
     HELLO: (struct.Struct(">B"), ("reason",)),
@@ -74,6 +87,40 @@ HELLO_UNKNOWN_SESSION, HELLO_RENEW = 0, 1
 LEAVE_REASONS = ("shutdown", "low_battery", "fault")
 
 _MAX_U48 = (1 << 48) - 1
+
+
+@dataclass(frozen=True, slots=True)
+class Guidance:
+    """A command's target and measured pose in arena metres and radians (section 3), and how
+    old the pose was when the edge sent the frame (None: not given)."""
+
+    target: tuple[float, float, float] | None
+    pose: tuple[float, float, float] | None
+    pose_age_us: int
+    delay: float = 0.0
+    """Start the move this share of a cell time after accepting it."""
+
+
+def guidance(payload: dict[str, Any]) -> Guidance | None:
+    """The target, pose and start delay of a checked COMMAND payload; None when it carries
+    none of them."""
+    guide = payload["guide"]
+    if not guide and not payload["delay_pct"]:
+        return None
+
+    def pose_of(prefix: str) -> tuple[float, float, float]:
+        return (
+            payload[f"{prefix}_x_mm"] / 1000,
+            payload[f"{prefix}_y_mm"] / 1000,
+            payload[f"{prefix}_heading_mrad"] / 1000,
+        )
+
+    return Guidance(
+        target=pose_of("target") if guide & GUIDE_TARGET else None,
+        pose=pose_of("pose") if guide & GUIDE_POSE else None,
+        pose_age_us=payload["pose_age_us"],
+        delay=payload["delay_pct"] / 100,
+    )
 
 
 class Malformed(ValueError):
@@ -112,9 +159,49 @@ class Frame:
         }
 
 
+def guide_payload(g: Guidance | None) -> dict[str, int]:
+    """The COMMAND fields of ``g`` (all zero for None): the inverse of :func:`guidance`."""
+    out = dict.fromkeys(GUIDE_FIELDS, 0)
+    if g is None:
+        return out
+    for prefix, flag, pose in (("target", GUIDE_TARGET, g.target), ("pose", GUIDE_POSE, g.pose)):
+        if pose is not None:
+            out["guide"] |= flag
+            out[f"{prefix}_x_mm"] = round(pose[0] * 1000)
+            out[f"{prefix}_y_mm"] = round(pose[1] * 1000)
+            out[f"{prefix}_heading_mrad"] = round(pose[2] * 1000)
+    if g.pose is not None:
+        out["pose_age_us"] = g.pose_age_us
+    out["delay_pct"] = round(g.delay * 100)
+    return out
+
+
+def _check_guide(p: dict[str, Any]) -> None:
+    """Target, pose and delay fields: flags known, parts not given all zero, headings within
+    pi, a pose at most a second old, a start delay of at most two cell times."""
+    guide = p["guide"]
+    if guide & ~(GUIDE_TARGET | GUIDE_POSE):
+        raise Malformed("malformed", f"unknown guide flags 0x{guide:02x}")
+    parts = {
+        GUIDE_TARGET: ("target_x_mm", "target_y_mm", "target_heading_mrad"),
+        GUIDE_POSE: ("pose_x_mm", "pose_y_mm", "pose_heading_mrad", "pose_age_us"),
+    }
+    for flag, names in parts.items():
+        if not guide & flag and any(p[n] for n in names):
+            raise Malformed("malformed", "a target or pose field set without its flag")
+    if max(abs(p["target_heading_mrad"]), abs(p["pose_heading_mrad"])) > HEADING_LIMIT_MRAD:
+        raise Malformed("malformed", "heading beyond pi")
+    if p["pose_age_us"] > POSE_AGE_LIMIT_US:
+        raise Malformed("malformed", f"pose {p['pose_age_us']} us old")
+    if p["delay_pct"] > DELAY_LIMIT_PCT:
+        raise Malformed("malformed", f"start delay {p['delay_pct']} % of a cell time")
+
+
 def _check_fields(kind: int, p: dict[str, Any]) -> None:
     if kind == COMMAND and p["action"] > STOP_ACTION:
         raise Malformed("malformed", f"unknown action {p['action']}")
+    if kind == COMMAND:
+        _check_guide(p)
     if kind == ESTOP and p["engage"] > 1:
         raise Malformed("malformed", f"estop engage must be 0 or 1, got {p['engage']}")
     if kind == ACK and (
@@ -195,8 +282,11 @@ def encode(
     """Build and sign one frame; ``fields`` are the payload fields of ``kind`` by name.
 
     Handshake frames are signed with the car's key, every other frame with its session's key.
+    A COMMAND's target and pose fields default to zero (not given).
     """
     fmt, names = _PAYLOADS[kind]
+    if kind == COMMAND:  # no target and no pose unless given
+        fields = {**dict.fromkeys(GUIDE_FIELDS, 0), **fields}
     body = _HEADER.pack(VERSION, kind, fmt.size, 0, car_id, session, seq)
     body += fmt.pack(*(fields[name] for name in names))
     link = LINK_CAR_TO_EDGE if kind & 0x80 else LINK_EDGE_TO_CAR

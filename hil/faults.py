@@ -8,6 +8,8 @@ once, at a time counted from the first episode's start:
 - ``stall=D@T``: the camera sends no frame for D;
 - ``leave=carN@T``: car N is taken off the arena (the fleet shrinks, the others go on);
 - ``join=carN@T``: car N is put on a free cell (the fleet grows);
+- ``cut=carN@T``: car N's next move stops half-way, where the car then is (a wheel blocked for
+  a moment): the edge must see it across a border and re-centre it;
 - ``forge=N@T``: N forged or malformed datagrams to the edge and to every car (random bytes,
   frames with a wrong key, truncated and replayed-looking frames): dropped and counted.
 
@@ -82,7 +84,7 @@ def parse_faults(spec: str | None) -> FaultPlan:
                 plan.network[_NETWORK[name]] = seconds(value, name) * 1000
             continue
         match = _EVENT.match(value)
-        if name in ("reboot", "leave", "join") and match and match.group("car"):
+        if name in ("reboot", "leave", "join", "cut") and match and match.group("car"):
             plan.events.append(Event(name, seconds(match["at"], name), car=int(match["car"])))
         elif name == "stall" and match and match.group("dur"):
             plan.events.append(
@@ -93,6 +95,6 @@ def parse_faults(spec: str | None) -> FaultPlan:
         else:
             raise FaultSpecError(
                 f"unknown or malformed fault {item!r} (known: {', '.join(_NETWORK)}, "
-                "reboot=carN@T, leave=carN@T, join=carN@T, stall=D@T, forge=N@T)"
+                "reboot=carN@T, leave=carN@T, join=carN@T, cut=carN@T, stall=D@T, forge=N@T)"
             )
     return plan

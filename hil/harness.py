@@ -1,19 +1,29 @@
 """udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
-        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] --report out/hil
+        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] [--motion-error lab] --report out/hil
 
 starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback UDP, the
 virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
 episodes (``--episodes`` per cell of cars x obstacles, or random ones for ``--duration``
 seconds), applies the fault spec (:mod:`udan.hil.faults`) through the world's control port, then
 stops both and writes the report (:mod:`udan.hil.report`): the edge's spans and deadline counts, the
-cars' own counters, the world's collisions, and the score table through the full loop beside
-the pure simulation of the same policy on the same layouts.
+cars' own counters, the world's collisions, how far the cars strayed from their cells' centres
+and how often they were re-centred (``--motion-error``: :mod:`udan.hil.motion`), and the score
+table through the full loop beside the pure simulation of the same policy on the same layouts.
+
+It says up front how many episodes it plans (``--episodes`` counts per cell), then shows its
+progress as it goes (episodes done of planned, the time left, the share of commands on time so
+far; read from the edge's telemetry file): a bar on a terminal, a line every
+``PROGRESS_LINE_S`` otherwise. SIGINT or SIGTERM stops the run: the edge first (it stops the cars
+and writes its report), then the world, and the report covers the episodes completed (exit code
+128 + the signal's number). The world and the edge end with the harness however it ends, even
+SIGKILLed: they are started asking the kernel to send them SIGTERM when it dies
+(:func:`udan.edge.sidecar.exit_with_parent`).
 
 Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
-parse, a missing model) is one line on stderr and exit code 2, and every process the harness
-started is stopped.
+parse, an unknown motion level, a missing model) is one line on stderr and exit code 2, and
+every process the harness started is stopped.
 """
 
 from __future__ import annotations
@@ -31,29 +41,43 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
 from udan.edge import protocol as ep
 from udan.edge.episodes import world_request
+from udan.edge.sidecar import parent_watch_env
 from udan.edge.transport import free_udp_port
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.export.runtime import OnnxPolicy
 from udan.fleetfile import write_fleet
 from udan.hil.faults import FaultPlan, FaultSpecError, parse_faults
+from udan.hil.motion import LEVELS, motion_level
 from udan.hil.world import Episode, episode_arena
 from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-hil"
 TASKS = ("find_water",)
 MARKER_BASE = 10
+POLL_S = 0.2
+"""How often the harness looks at its processes and the edge's telemetry."""
+PROGRESS_LINE_S = 10.0
+"""Without a terminal, a progress line this often."""
 FIRST_EPISODE_POLL_S = 0.02
 """How often the fault injector asks the world whether the first episode has started."""
 
 
 class HarnessError(RuntimeError):
     """The loop could not be run; one line."""
+
+
+class Stopped(RuntimeError):
+    """A signal stopped the run before it started (nothing to report)."""
+
+    def __init__(self, sig: str) -> None:
+        super().__init__(f"stopped by {sig} before the run started")
+        self.signal = sig
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -76,8 +100,16 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--report", type=Path, default=Path("out/hil"), help="report folder")
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--cell-time-ms", type=float, default=200.0)
+    run.add_argument(
+        "--motion-error", default="0", metavar="LEVEL",
+        help=f"how far the cars' moves stray: {', '.join(LEVELS)} (docs/motion.md)",
+    )  # fmt: skip
+    run.add_argument("--settle-mm", type=float, default=30.0, help="udan-edge --settle-mm")
+    run.add_argument("--settle-deg", type=float, default=5.0, help="udan-edge --settle-deg")
     run.add_argument("--fps", type=float, default=40.0)
-    run.add_argument("--video", action="store_true", help="record the camera (run.mp4)")
+    run.add_argument(
+        "--video", action="store_true", help="record the camera, annotated by the edge (run.mp4)"
+    )
     run.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
@@ -156,28 +188,36 @@ class Loop:
         self.car_addresses: dict[int, tuple[str, int]] = {}
 
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        """``cmd`` in a session of its own (a Ctrl-C is the harness's to handle), ending with
+        the harness however it ends."""
         log = open(self.folder / f"{name}.log", "w", encoding="utf-8")  # noqa: SIM115
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=log, text=True, start_new_session=True
-        )
+            cmd, stdout=subprocess.PIPE, stderr=log, text=True, start_new_session=True,
+            env=parent_watch_env(),
+        )  # fmt: skip
         self.procs[name] = proc
         return proc
 
-    def start_world(self) -> int:
+    async def start_world(self, stopping: asyncio.Event) -> int | None:
+        """Start the world; its control port once it is ready, None if stopped before."""
         a = self.args
         cmd = [
             sys.executable, "-m", "udan.hil.world", "--fleet", str(self.fleet),
             "--edge", f"127.0.0.1:{self.edge_port}", "--camera-name", self.camera,
             "--agents", f"{self.cars[0]}-{self.cars[1]}", "--obstacles", a.obstacles,
             "--seed", str(a.seed), "--cell-time-ms", str(a.cell_time_ms), "--fps", str(a.fps),
-            "--tilt", str(a.tilt), "--noise", str(a.noise),
+            "--tilt", str(a.tilt), "--noise", str(a.noise), "--motion-error", a.motion_error,
         ]  # fmt: skip
         if a.episodes is not None:
             cmd += ["--episodes-per-cell", str(a.episodes)]
-        if a.video:
-            cmd += ["--video", str(self.folder / "run.mp4")]
         proc = self._spawn("world", cmd)
-        line = proc.stdout.readline() if proc.stdout else ""
+        reading = asyncio.get_running_loop().run_in_executor(None, proc.stdout.readline)
+        stopped = asyncio.ensure_future(stopping.wait())
+        await asyncio.wait({reading, stopped}, return_when=asyncio.FIRST_COMPLETED)
+        stopped.cancel()
+        if not reading.done():  # a signal while the world starts: stop() ends it
+            return None
+        line = reading.result()
         try:
             ready = json.loads(line)
             self.car_addresses = {c["id"]: tuple(c["address"]) for c in ready["cars"]}
@@ -196,11 +236,14 @@ class Loop:
             "--world", f"127.0.0.1:{control_port}", "--episode-steps", str(a.episode_steps),
             "--report", str(self.folder / "edge.json"),
             "--telemetry", str(self.folder / "telemetry.jsonl"), "--quiet",
+            "--settle-mm", str(a.settle_mm), "--settle-deg", str(a.settle_deg),
         ]  # fmt: skip
         if a.duration is not None:
             cmd += ["--duration", str(a.duration)]
         if a.edge_realtime:
             cmd.append("--realtime")
+        if a.video:
+            cmd += ["--video", str(self.folder / "run.mp4")]
         cmd += ["--perception", a.edge_perception]
         return self._spawn("edge", cmd)
 
@@ -255,9 +298,10 @@ class Loop:
         return sent
 
     def stop(self) -> dict[str, str]:
-        """SIGTERM every process still running (SIGKILL after a grace period); their exits."""
+        """SIGTERM every process still running, the last started (the edge: it stops the cars)
+        first, then wait for each (SIGKILL after a grace period); their exits."""
         exits = {}
-        for name, proc in self.procs.items():
+        for name, proc in reversed(self.procs.items()):
             if proc.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
                     proc.send_signal(signal.SIGTERM)
@@ -267,35 +311,143 @@ class Loop:
                 proc.kill()
                 proc.wait()
             exits[name] = proc.returncode
-        return exits
+        return dict(reversed(exits.items()))
 
 
-async def run_loop(args: argparse.Namespace, folder: Path, faults: FaultPlan) -> dict[str, Any]:
-    """Start world and edge, apply faults, wait for the edge to finish, stop all, collect."""
+class Progress:
+    """Episodes done of planned, the time left and the commands on time so far, from the
+    edge's telemetry file as it grows: a bar on a terminal, a line now and then otherwise."""
+
+    def __init__(self, planned: int | None, duration_s: float | None, stream: TextIO) -> None:
+        self.planned = planned
+        self.duration_s = duration_s
+        self.stream = stream
+        self.episodes = 0
+        self.on_time = 0
+        self.missed = 0
+        self._offset = 0
+        self._partial = b""
+        self._started = time.monotonic()
+        self._next_line = self._started + PROGRESS_LINE_S
+        self._bar = None
+        if stream.isatty():
+            from tqdm import tqdm
+
+            total = planned if planned is not None else duration_s
+            unit = "episode" if planned is not None else "s"
+            self._bar = tqdm(total=total, unit=unit, file=stream, dynamic_ncols=True)
+
+    def read(self, telemetry: Path) -> None:
+        """Take in what the edge has written since the last call."""
+        try:
+            with telemetry.open("rb") as f:
+                f.seek(self._offset)
+                data = f.read()
+        except OSError:
+            return
+        self._offset += len(data)
+        *lines, self._partial = (self._partial + data).split(b"\n")
+        for line in lines:
+            record = json.loads(line)
+            if record["kind"] == "episode":
+                self.episodes += 1
+            elif record["kind"] == "step":
+                self.on_time += record.get("on_time", 0)
+                self.missed += record.get("missed", 0)
+        self._show()
+
+    def share(self) -> str:
+        sent = self.on_time + self.missed
+        return f"{100 * self.on_time / sent:.2f} %" if sent else "-"
+
+    def _show(self) -> None:
+        elapsed = time.monotonic() - self._started
+        if self._bar is not None:
+            self._bar.n = (
+                self.episodes
+                if self.planned is not None
+                else min(round(elapsed), self.duration_s or 0)
+            )
+            self._bar.set_postfix_str(
+                f"episodes {self.episodes}, on time {self.share()}", refresh=False
+            )
+            self._bar.refresh()
+            return
+        if time.monotonic() < self._next_line:
+            return
+        self._next_line += PROGRESS_LINE_S
+        print(f"{PROG}: {self.line(elapsed)}", file=self.stream, flush=True)
+
+    def line(self, elapsed: float) -> str:
+        """Episodes done (of planned), the time left, the share on time so far."""
+        from tqdm import tqdm
+
+        if self.planned is not None:
+            left = (
+                tqdm.format_interval(elapsed / self.episodes * (self.planned - self.episodes))
+                if self.episodes
+                else "?"
+            )
+            done = f"{self.episodes}/{self.planned} episodes"
+        else:
+            left = tqdm.format_interval(max(0.0, (self.duration_s or 0) - elapsed))
+            done = f"{self.episodes} episodes"
+        return f"{done}, {left} left, commands on time {self.share()}"
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
+async def run_loop(
+    args: argparse.Namespace, folder: Path, faults: FaultPlan, progress: Progress
+) -> dict[str, Any]:
+    """Start world and edge, apply faults, wait for the edge to finish or a signal, stop all,
+    collect. ``interrupted`` in the result names the signal that stopped the run, if one did."""
     loop = Loop(args, folder, faults)
+    aio = asyncio.get_running_loop()
+    stopping = asyncio.Event()
+    interrupted: list[str] = []
+
+    def interrupt(sig: signal.Signals) -> None:
+        interrupted.append(sig.name)
+        stopping.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        aio.add_signal_handler(sig, interrupt, sig)
     world_summary: dict[str, Any] | None = None
     try:
-        control = ("127.0.0.1", loop.start_world())
-        edge = loop.start_edge(control[1])
+        port = await loop.start_world(stopping)
+        if port is None:
+            raise Stopped(interrupted[0])
+        control = ("127.0.0.1", port)
+        edge = loop.start_edge(port)
         injector = asyncio.ensure_future(loop.apply_faults(control))
         deadline = None if args.timeout is None else time.monotonic() + args.timeout
-        while edge.poll() is None:
+        telemetry = folder / "telemetry.jsonl"
+        while edge.poll() is None and not stopping.is_set():
             if deadline is not None and time.monotonic() > deadline:
                 break
             if injector.done() and injector.exception() is not None:
                 raise HarnessError(f"fault injection failed: {injector.exception()}")
-            await asyncio.sleep(0.2)
+            progress.read(telemetry)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stopping.wait(), POLL_S)
         injector.cancel()
-        with contextlib.suppress(Exception):
-            world_summary = {"state": await world_request(control, {"op": "state"})}
+        if not stopping.is_set():
+            with contextlib.suppress(Exception):
+                world_summary = {"state": await world_request(control, {"op": "state"}, 1.0)}
     finally:
         exits = loop.stop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            aio.remove_signal_handler(sig)
         world_out = loop.procs.get("world")
         if world_out is not None and world_out.stdout is not None:
             for line in world_out.stdout.read().splitlines()[::-1]:
                 with contextlib.suppress(json.JSONDecodeError):
                     world_summary = {**(world_summary or {}), **json.loads(line)}
                     break
+    progress.read(folder / "telemetry.jsonl")
     edge_report_path = folder / "edge.json"
     if not edge_report_path.is_file():
         raise HarnessError(f"udan-edge wrote no report (exit {exits.get('edge')}); see edge.log")
@@ -304,7 +456,18 @@ async def run_loop(args: argparse.Namespace, folder: Path, faults: FaultPlan) ->
         "world": world_summary or {},
         "exits": exits,
         "events": loop.events_done,
+        "interrupted": interrupted[0] if interrupted else None,
     }
+
+
+def planned_episodes(args: argparse.Namespace) -> int | None:
+    """Episodes the run plays: ``--episodes`` per cell of cars x obstacles (None with
+    ``--duration``: random ones until the time is up)."""
+    if args.episodes is None:
+        return None
+    cars, obstacles = parse_range(args.cars, "cars"), parse_range(args.obstacles, "obstacles")
+    cells = (cars[1] - cars[0] + 1) * (obstacles[1] - obstacles[0] + 1)
+    return args.episodes * cells
 
 
 def _check(args: argparse.Namespace) -> FaultPlan:
@@ -318,6 +481,7 @@ def _check(args: argparse.Namespace) -> FaultPlan:
         raise HarnessError("give exactly one of --episodes (per cell) or --duration")
     if not args.model.is_file():
         raise HarnessError(f"model {args.model}: no such file")
+    motion_level(args.motion_error)
     faults = parse_faults(args.faults)
     try:
         args.report.mkdir(parents=True, exist_ok=True)
@@ -330,14 +494,39 @@ def _check(args: argparse.Namespace) -> FaultPlan:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: 0 when the run completed (the report says how well), 2 on bad input."""
+    """Entry point: 0 when the run completed (the report says how well), 2 on bad input,
+    128 + the signal's number when a signal stopped it (the report covers what was done)."""
     args = _parser().parse_args(argv)
     try:
         faults = _check(args)
-        result = asyncio.run(run_loop(args, args.report, faults))
     except (HarnessError, FaultSpecError, EnvConfigError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
+    planned = planned_episodes(args)
+    if planned is not None:
+        cars, obstacles = parse_range(args.cars, "cars"), parse_range(args.obstacles, "obstacles")
+        print(
+            f"{PROG}: {planned} episodes planned ({args.episodes} per cell: cars "
+            f"{cars[0]}-{cars[1]} x obstacles {obstacles[0]}-{obstacles[1]}); report in "
+            f"{args.report}",
+            file=sys.stderr,
+            flush=True,
+        )
+    else:
+        print(f"{PROG}: random episodes for {args.duration:g} s; report in {args.report}",
+              file=sys.stderr, flush=True)  # fmt: skip
+    progress = Progress(planned, args.duration, sys.stderr)
+    try:
+        result = asyncio.run(run_loop(args, args.report, faults, progress))
+    except HarnessError as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    except Stopped as stopped:
+        print(f"{PROG}: {stopped}", file=sys.stderr)
+        return 128 + signal.Signals[stopped.signal].value
+    finally:
+        progress.close()
+    result["planned"] = planned
     from udan.hil.report import can_plot, write_report
 
     episodes = [Episode(e["agents"], e["obstacles"], e["seed"]) for e in result["edge"]["episodes"]]
@@ -349,4 +538,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
     print(json.dumps(summary["headline"], indent=1))
+    if result["interrupted"] is not None:
+        print(
+            f"{PROG}: stopped by {result['interrupted']} after {len(episodes)} of "
+            f"{planned if planned is not None else '?'} episodes; the report covers them",
+            file=sys.stderr,
+        )
+        return 128 + signal.Signals[result["interrupted"]].value
     return 0

@@ -55,7 +55,8 @@ class CameraModel:
     width: int = 1920
     height: int = 1200
     distance_m: float = 3.0
-    """From the camera to the arena's centre, along the optical axis."""
+    """From the camera to the arena's centre, along the optical axis (at least: see
+    `focal_px`)."""
     tilt_deg: float = 0.0
     """Optical axis away from vertical: the camera moves towards row 0 (-y) and still looks at
     the arena centre, so row 0 looks bigger."""
@@ -65,6 +66,10 @@ class CameraModel:
     """Rotation of the camera about its own optical axis (a camera mounted askew)."""
     fill: float = 0.94
     """Fraction of the frame (in its tighter direction) the arena plus corner markers fill."""
+    focal_px: float | None = None
+    """A lens of this focal length (pixels). The camera then stands back along its axis from
+    `distance_m` until the arena fits within `fill` of the frame (a lab that tilts its camera
+    moves it back). None: the lens that makes the arena fill `fill` from `distance_m`."""
     k1: float = 0.0
     k2: float = 0.0
     noise_sigma: float = 0.0
@@ -81,21 +86,48 @@ class CameraModel:
         rx = np.array([[1, 0, 0], [0, math.cos(t), -math.sin(t)], [0, math.sin(t), math.cos(t)]])
         return _about_z(math.radians(self.roll_deg)) @ rx @ _about_z(y)
 
+    def standoff(self, geometry: ArenaGeometry) -> float:
+        """Metres from the camera to the arena's centre along the optical axis: `distance_m`,
+        or with a given lens (`focal_px`) the least distance from there at which the arena
+        fits within `fill` of the frame."""
+        if self.focal_px is None or self._fill_focal(geometry, self.distance_m) >= self.focal_px:
+            return self.distance_m
+        near, far = self.distance_m, 2 * self.distance_m
+        while self._fill_focal(geometry, far) < self.focal_px:
+            near, far = far, 2 * far
+        for _ in range(40):
+            mid = (near + far) / 2
+            near, far = (
+                (mid, far) if self._fill_focal(geometry, mid) < self.focal_px else (near, mid)
+            )
+        return far
+
     def position(self, geometry: ArenaGeometry) -> np.ndarray:
-        """Where the camera is (world metres): `distance_m` back along its optical axis from
+        """Where the camera is (world metres): `standoff` back along its optical axis from
         the arena's centre."""
+        return self._position(geometry, self.standoff(geometry))
+
+    def _position(self, geometry: ArenaGeometry, distance: float) -> np.ndarray:
         centre = np.array([geometry.width_m / 2, geometry.height_m / 2, 0.0])
-        return centre - self.rotation().T @ np.array([0.0, 0.0, self.distance_m])
+        return centre - self.rotation().T @ np.array([0.0, 0.0, distance])
 
     def distortion(self) -> np.ndarray:
         """OpenCV distortion coefficients (k1, k2, p1, p2, k3)."""
         return np.array([self.k1, self.k2, 0.0, 0.0, 0.0])
 
     def intrinsics(self, geometry: ArenaGeometry) -> tuple[np.ndarray, np.ndarray]:
-        """Camera matrix and distortion coefficients, as a calibration file would hold them; the
-        focal length is chosen so the arena and its corner markers fill `fill` of the frame."""
+        """Camera matrix and distortion coefficients, as a calibration file would hold them: the
+        lens `focal_px`, or the one with which the arena and its corner markers fill `fill` of
+        the frame."""
+        f = self.focal_px or self._fill_focal(geometry, self.distance_m)
+        k = np.array([[f, 0, (self.width - 1) / 2], [0, f, (self.height - 1) / 2], [0, 0, 1]])
+        return k, self.distortion()
+
+    def _fill_focal(self, geometry: ArenaGeometry, distance: float) -> float:
+        """The focal length (pixels) with which the arena and its corner markers fill `fill` of
+        the frame seen from `distance`."""
         r = self.rotation()
-        cam = self.position(geometry)
+        cam = self._position(geometry, distance)
         out = geometry.corner_gap_m + geometry.corner_marker_m
         lo, hi_x, hi_y = -out, geometry.width_m + out, geometry.height_m + out
         s = np.linspace(0.0, 1.0, 64)
@@ -113,9 +145,7 @@ class CameraModel:
         r2 = x * x + y * y
         d = 1 + self.k1 * r2 + self.k2 * r2 * r2
         x, y = x * d, y * d
-        f = self.fill * min(self.width / 2 / np.abs(x).max(), self.height / 2 / np.abs(y).max())
-        k = np.array([[f, 0, (self.width - 1) / 2], [0, f, (self.height - 1) / 2], [0, 0, 1]])
-        return k, self.distortion()
+        return self.fill * min(self.width / 2 / np.abs(x).max(), self.height / 2 / np.abs(y).max())
 
 
 def _about_z(angle: float) -> np.ndarray:

@@ -7,11 +7,13 @@ virtual camera as a process of its own, which renders a mirror of the world at 4
 memory (``virtual://NAME``).
 The edge runs as a separate process and sees none of this except camera frames and UDP.
 
-Where moves end is decided here (``HilWorld``, the firmware's ``World``): a car's move ends on
-the next cell unless that cell is off the grid, an obstacle, or held by a car that is not itself
-leaving it, which is what the arena's rules say for moves the edge's safety filter let through.
-A car that arrives while the car it follows has its move cut (stop, watchdog) is a collision,
-and counted: the edge must never cause one.
+Where moves end is decided here (``HilWorld``, the firmware's ``World``): each car has a true,
+continuous pose; a move drives from it along the car's speed profile and ends where the run's
+motion level makes it (``--motion-error 0|low|lab|rough``, :mod:`udan.hil.motion`: level ``0``
+exactly on the target cell's centre, as the earlier grid world did), unless the cell it ends in
+is off the grid, an obstacle, or held by a car that is not itself leaving it (the arena's rules
+make such a move a wait). A move cut short (stop, watchdog, reboot) leaves the car where it is.
+Car bodies that touch are collisions, and counted: the edge must never cause one.
 
 Episodes come from the same code as the simulation: episode ``i`` of the plan is the arena
 ``ArenaBatch(agents=n, obstacles=m, seed=s)`` lays out, its first ``n`` cars of the fleet placed
@@ -27,6 +29,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import math
 import multiprocessing
 import os
 import signal
@@ -35,7 +38,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -44,21 +47,36 @@ import numpy as np
 
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage
+from udan.edge.sidecar import exit_with_parent
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
-from udan.envs.rules import ACTION_DELTAS, FREE, OBSTACLE, WALL, WATER
+from udan.envs.rules import FREE, OBSTACLE, WALL, WATER
 from udan.firmware_mock.firmware import CarTiming
 from udan.firmware_mock.fleet import load_fleet
+from udan.firmware_mock.motor import Pose, Trajectory, wrap
 from udan.firmware_mock.udp import MockCar
 from udan.fleetfile import FleetFileError
+from udan.hil.motion import (
+    LEVELS,
+    CarMotion,
+    MotionLevel,
+    bodies_touch,
+    may_touch,
+    motion_level,
+    poses_at,
+)
 from udan.hil.render import CameraModel, Renderer
 from udan.hil.vcam import VirtualCamera
 
 PROG = "hil-world"
 Cell = tuple[int, int]
 _KINDS = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
-#: A world for the camera: layout, car cells, moves in progress (from, to, start ns).
-Scene = tuple[np.ndarray, dict[int, Cell], dict[int, tuple[Cell, Cell, int]]]
+#: A world for the camera: layout, cars' poses at rest, moves in progress.
+Scene = tuple[np.ndarray, dict[int, Pose], dict[int, Trajectory]]
+CONTACT_STEP_NS = 5_000_000
+"""Contacts are sampled this often while cars move (7 mm at the fastest cars' top speed)."""
+STOPS_KEPT = 200
+"""Moves cut short, and contacts, kept for the state (its answer fits one datagram)."""
 
 
 @dataclass(frozen=True)
@@ -107,23 +125,53 @@ def episode_arena(task: str, episode: Episode, steps: int = 50) -> ArenaBatch:
 
 
 class HilWorld:
-    """Where every car is, where moves end, and what the camera sees (thread-safe snapshot)."""
+    """Where every car truly is, where moves end, what the camera sees (thread-safe snapshot),
+    and which car bodies touched.
 
-    def __init__(self, geometry: ArenaGeometry, markers: dict[int, int], cell_time_s: float):
+    Poses are continuous (arena metres and radians). A move begun by a car's controller runs
+    along the controller's speed profile from where the car truly is to where the motion
+    ``level`` makes it end (:class:`udan.hil.motion.CarMotion`; at level ``0`` exactly on the
+    centre of its target's cell). A move cut short leaves the car where it is at that instant.
+    Contacts are checked between every two events (a move begun, ended or cut, a car placed or
+    taken away), sampling the moves in force every ``CONTACT_STEP_NS``: every new contact of two
+    bodies is a collision, counted once however long they touch.
+    """
+
+    def __init__(
+        self,
+        geometry: ArenaGeometry,
+        markers: dict[int, int],
+        level: MotionLevel = LEVELS["0"],
+        seed: int = 0,
+    ) -> None:
         self.geometry = geometry
+        self.cell_m = geometry.cell_m
         self.markers = markers
-        self.cell_time_ns = int(cell_time_s * 1e9)
+        self.level = level
+        self.seed = seed
         self.layout = np.zeros((geometry.rows, geometry.cols), np.uint8)
-        self.pose: dict[int, Cell] = {}
-        self.motion: dict[int, tuple[Cell, Cell, int]] = {}
-        self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0}
+        self.pose: dict[int, Pose] = {}
+        """Every car's true pose at rest (for a car in a move: where the move started)."""
+        self.motion: dict[int, Trajectory] = {}
+        self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0, "slips": 0}
+        self.stops: deque[list[float]] = deque(maxlen=STOPS_KEPT)
+        """Where moves were cut short: [car, t_ns, x, y, heading], the latest ones."""
+        self.contacts: deque[list[float]] = deque(maxlen=STOPS_KEPT)
+        """Every collision: [t_ns, car, other, x, y, heading, other's x, y, heading]."""
+        self.settled: dict[int, list[tuple[float, float]]] = {}
+        """Per car and per minute of the run: the largest (off-centre metres, |heading|
+        radians) a move ended with, in truth."""
         self.listener: Callable[[Scene], None] | None = None
         """Called with the new :meth:`scene` after every change (the camera process's mirror)."""
+        self._errors: dict[int, CarMotion] = {}
+        self._touching: set[tuple[int, int]] = set()
+        self._swept_ns = time.monotonic_ns()  # contacts are counted up to here
+        self._started_ns = self._swept_ns
         self._lock = threading.Lock()
 
     def scene(self) -> Scene:
         """What the camera needs to draw any instant until the next change: the layout, every
-        car's cell, and the moves in progress (from, to, start time)."""
+        car's pose at rest, and the moves in progress."""
         with self._lock:
             return self.layout.copy(), dict(self.pose), dict(self.motion)
 
@@ -137,65 +185,135 @@ class HilWorld:
         if self.listener is not None:
             self.listener(self.scene())
 
+    def _cell(self, pose: Pose) -> Cell:
+        return math.floor(pose.y / self.cell_m), math.floor(pose.x / self.cell_m)
+
+    def _centre(self, cell: Cell) -> Pose:
+        return Pose(*self.geometry.cell_centre(*cell), 0.0)
+
     # -- the firmware's World --------------------------------------------------------------
-    def begin(self, car_id: int, pose: Cell, action: int) -> None:
-        """A car in the arena started a move: remember where from and to (and when)."""
+    def begin(self, car_id: int, plan: Trajectory) -> None:
+        """A car in the arena started driving ``plan``: its true move, from where it is."""
         with self._lock:
-            if car_id in self.pose:
-                cur = self.pose[car_id]
-                dest = (
-                    cur[0] + int(ACTION_DELTAS[action][0]),
-                    cur[1] + int(ACTION_DELTAS[action][1]),
-                )
-                self.motion[car_id] = (cur, dest, time.monotonic_ns())
+            self._sweep(time.monotonic_ns())
+            start = self.pose.get(car_id)
+            if start is not None:
+                if self.level.exact:
+                    end = self._centre(self._cell(plan.end))._replace(heading=plan.end.heading)
+                else:
+                    errors = self._errors.get(car_id)
+                    if errors is None:
+                        errors = CarMotion(self.level, self.seed, car_id, self.cell_m)
+                        self._errors[car_id] = errors
+                    slips = errors.slips
+                    end = errors.true_end(start, plan)
+                    self.counts["slips"] += errors.slips - slips
+                self.motion[car_id] = replace(plan, start=start, end=end)
         self._changed()
 
     def abort(self, car_id: int) -> None:
-        """A move was cut: the car stays; a follower already on its cell is a collision."""
+        """A move was cut: the car stays where it is now."""
         with self._lock:
-            if self.motion.pop(car_id, None) is not None:
+            now = time.monotonic_ns()
+            self._sweep(now)
+            move = self.motion.pop(car_id, None)
+            if move is not None and car_id in self.pose:
+                here = move.at(now)
+                self.pose[car_id] = here
                 self.counts["aborted"] += 1
-                here = self.pose.get(car_id)
-                if any(c != car_id and p == here for c, p in self.pose.items()):
-                    self.counts["collisions"] += 1
+                self.stops.append([car_id, now, *(round(v, 4) for v in here)])
         self._changed()
 
-    def move(self, car_id: int, pose: Cell, action: int) -> Cell:
-        """Where a finished move ends (a car off the arena goes nowhere)."""
+    def end(self, car_id: int) -> bool:
+        """A car's move is over: it stands where the move ended, unless the rules refuse the
+        cell that is (off the grid, an obstacle, held by a car not itself leaving it): then it
+        is back where it started, as the arena's rules make such a move a wait."""
         with self._lock:
-            self.motion.pop(car_id, None)
-            if car_id in self.pose:
-                cur = self.pose[car_id]
-                d = ACTION_DELTAS[action]
-                dest = (cur[0] + int(d[0]), cur[1] + int(d[1]))
+            now = time.monotonic_ns()
+            self._sweep(now)
+            move = self.motion.pop(car_id, None)
+            moved = False
+            if move is not None and car_id in self.pose:
+                dest = self._cell(move.end)
                 inside = 0 <= dest[0] < self.geometry.rows and 0 <= dest[1] < self.geometry.cols
                 held = any(
                     c != car_id
-                    and p == dest
-                    and not (c in self.motion and self.motion[c][0] == dest)
+                    and self._cell(p) == dest
+                    and not (c in self.motion and self._cell(self.motion[c].start) == dest)
                     for c, p in self.pose.items()
                 )
-                if inside and self.layout[dest] == FREE and not held:
-                    self.pose[car_id] = dest
-                    self.counts["moves"] += 1
-                else:
-                    self.counts["blocked"] += 1
-            end = self.pose.get(car_id, pose)
+                moved = inside and self.layout[dest] == FREE and not held
+                self.pose[car_id] = move.end if moved else move.start
+                self.counts["moves" if moved else "blocked"] += 1
+                self._settled(car_id, self.pose[car_id], now)
         self._changed()
-        return end
+        return moved
+
+    def _settled(self, car_id: int, pose: Pose, now: int) -> None:
+        """Keep the minute's worst off-centre distance and heading of the car's moves."""
+        cx, cy, _ = self._centre(self._cell(pose))
+        off, turned = math.hypot(pose.x - cx, pose.y - cy), abs(wrap(pose.heading))
+        minutes = self.settled.setdefault(car_id, [])
+        minute = (now - self._started_ns) // 60_000_000_000
+        minutes.extend([(0.0, 0.0)] * (minute + 1 - len(minutes)))
+        worst = minutes[minute]
+        minutes[minute] = (max(worst[0], off), max(worst[1], turned))
+
+    # -- contacts --------------------------------------------------------------------------
+    def _sweep(self, now: int) -> None:
+        """Count the contacts since the last event: the moves in force have not changed since,
+        so sampling them is the whole story (cars at rest are checked once)."""
+        since, self._swept_ns = self._swept_ns, now
+        cars = sorted(self.pose)
+        if len(cars) < 2:
+            self._touching.clear()
+            return
+        if self.motion and now > since:
+            times = np.append(np.arange(since + CONTACT_STEP_NS, now, CONTACT_STEP_NS), now)
+        else:
+            times = np.array([now])
+        poses = np.stack(
+            [
+                poses_at(self.motion[c], times) if c in self.motion
+                else np.broadcast_to(np.asarray(self.pose[c]), (len(times), 3))
+                for c in cars
+            ],
+            1,
+        )  # fmt: skip
+        touching = set()
+        first, second = np.triu_indices(len(cars), 1)
+        close = may_touch(poses[:, first], poses[:, second]).any(axis=0)
+        for i, j in zip(first[close].tolist(), second[close].tolist(), strict=True):
+            a, b = poses[:, i], poses[:, j]
+            near = may_touch(a, b)
+            contact = np.zeros(len(times), bool)
+            contact[near] = bodies_touch(a[near], b[near])
+            pair = (cars[i], cars[j])
+            before = np.concatenate([[pair in self._touching], contact[:-1]])
+            for k in np.flatnonzero(contact & ~before):
+                self.counts["collisions"] += 1
+                poses = np.round(np.concatenate([a[k], b[k]]), 4).tolist()
+                self.contacts.append([int(times[k]), *pair, *poses])
+            if contact[-1]:
+                touching.add(pair)
+        self._touching = touching
 
     # -- episodes and the harness ----------------------------------------------------------
     def place(self, layout: np.ndarray, cells: dict[int, Cell]) -> None:
-        """A new layout with these cars on these cells; every other car is parked (unseen)."""
+        """A new layout with these cars on these cells' centres; every other car is parked
+        (unseen)."""
         with self._lock:
             self.layout = layout.copy()
-            self.pose = dict(cells)
+            self.pose = {car: self._centre(cell) for car, cell in cells.items()}
             self.motion.clear()
+            self._touching.clear()
+            self._swept_ns = time.monotonic_ns()
         self._changed()
 
     def remove(self, car_id: int) -> None:
         """Take a car off the arena (it leaves the camera's view)."""
         with self._lock:
+            self._sweep(time.monotonic_ns())
             self.pose.pop(car_id, None)
             self.motion.pop(car_id, None)
         self._changed()
@@ -203,7 +321,8 @@ class HilWorld:
     def add(self, car_id: int, cell: Cell | None = None) -> Cell:
         """Put a car on ``cell`` (default: the free start cell nearest the bottom-right)."""
         with self._lock:
-            taken = set(self.pose.values())
+            self._sweep(time.monotonic_ns())
+            taken = {self._cell(p) for p in self.pose.values()}
             if cell is None:
                 free = [
                     (r, c)
@@ -214,25 +333,19 @@ class HilWorld:
                 cell = free[0]
             if self.layout[cell] != FREE or cell in taken:
                 raise ValueError(f"cell {cell} is not free")
-            self.pose[car_id] = cell
+            self.pose[car_id] = self._centre(cell)
         self._changed()
         return cell
 
     # -- what the camera sees ----------------------------------------------------------------
     def snapshot(self, now_ns: int) -> tuple[list[tuple[int, float, float, float]], dict]:
-        """Cars as (marker, x, y, heading) with moves in progress interpolated, and the static
-        cells by kind, at ``now_ns``."""
+        """Cars as (marker, x, y, heading) with moves in progress where they are at
+        ``now_ns``, and the static cells by kind."""
         with self._lock:
             cars = []
-            for car, cell in self.pose.items():
-                x, y = self.geometry.cell_centre(*cell)
-                if car in self.motion:
-                    (r0, c0), (r1, c1), t0 = self.motion[car]
-                    f = min(max((now_ns - t0) / self.cell_time_ns, 0.0), 1.0)
-                    x0, y0 = self.geometry.cell_centre(r0, c0)
-                    x1, y1 = self.geometry.cell_centre(r1, c1)
-                    x, y = x0 + f * (x1 - x0), y0 + f * (y1 - y0)
-                cars.append((self.markers[car], x, y, 0.0))
+            for car, pose in self.pose.items():
+                x, y, heading = self.motion[car].at(now_ns) if car in self.motion else pose
+                cars.append((self.markers[car], x, y, heading))
             cells = {
                 kind: [tuple(rc) for rc in np.argwhere(self.layout == code).tolist()]
                 for kind, code in _KINDS.items()
@@ -240,12 +353,17 @@ class HilWorld:
         return cars, cells
 
     def state(self) -> dict[str, Any]:
-        """Truth for the harness: every car's cell, moves in progress, counts."""
+        """Truth for the harness: every car's cell and pose, moves in progress, counts, where
+        moves were cut, and each minute's worst end of a move per car."""
         with self._lock:
             return {
-                "pose": {str(c): list(p) for c, p in self.pose.items()},
+                "pose": {str(c): list(self._cell(p)) for c, p in self.pose.items()},
+                "xy": {str(c): list(p) for c, p in self.pose.items()},
                 "moving": sorted(self.motion),
                 "counts": dict(self.counts),
+                "stops": list(self.stops),
+                "contacts": list(self.contacts),
+                "settled": {str(c): m for c, m in self.settled.items()},
             }
 
 
@@ -312,13 +430,11 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     try:
         model = CameraModel(**config["model"])
         renderer = Renderer(config["geometry"], model)
-        camera = VirtualCamera(
-            config["name"], model.width, model.height, video=config["video"], fps=config["fps"]
-        )
+        camera = VirtualCamera(config["name"], model.width, model.height, fps=config["fps"])
     except (OSError, ValueError) as err:
         conn.send(("error", str(err)))
         return
-    world = HilWorld(config["geometry"], config["markers"], config["cell_time_s"])
+    world = HilWorld(config["geometry"], config["markers"])
     halt = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: halt.set())
     render_ns: deque[int] = deque(maxlen=20_000)
@@ -392,7 +508,8 @@ class WorldServer:
         self.specs = load_fleet(args.fleet, base_port=0)
         self.geometry = ArenaGeometry()
         markers = {s.car_id: s.marker for s in self.specs}
-        self.world = HilWorld(self.geometry, markers, args.cell_time_ms / 1000)
+        self.level = motion_level(args.motion_error)
+        self.world = HilWorld(self.geometry, markers, self.level, seed=args.seed)
         self.episodes = plan(
             parse_range(args.agents, "agents"),
             parse_range(args.obstacles, "obstacles"),
@@ -418,6 +535,12 @@ class WorldServer:
             return {}
         if op == "reboot":
             self.cars[int(request["car"])].firmware.reboot()
+            return {}
+        if op == "cut":
+            share = float(request.get("share", 0.5))
+            if not 0 < share < 1:
+                raise ValueError(f"cut share {share} outside 0-1")
+            self.cars[int(request["car"])].controller.drive.cut_next_move(share)
             return {}
         if op == "leave":
             self.world.remove(int(request["car"]))
@@ -459,7 +582,7 @@ class WorldServer:
         args = self.args
         loop = asyncio.get_running_loop()
         edge_host, _, edge_port = args.edge.rpartition(":")
-        timing = CarTiming(cell_time_s=args.cell_time_ms / 1000)
+        timing = CarTiming(cell_time_s=args.cell_time_ms / 1000, accel_share=self.level.accel_share)
         freeze_garbage()  # real cars have no garbage collector to pause them
         for i, spec in enumerate(self.specs):
             car = MockCar(
@@ -478,10 +601,8 @@ class WorldServer:
                 "model": model,
                 "geometry": self.geometry,
                 "name": args.camera_name,
-                "video": None if args.video is None else str(args.video),
                 "fps": args.fps,
                 "markers": self.world.markers,
-                "cell_time_s": args.cell_time_ms / 1000,
             },
         )
         control, _ = await loop.create_datagram_endpoint(
@@ -519,8 +640,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes-per-cell", type=int, help="plan every cell in turn (else random)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cell-time-ms", type=float, default=200.0)
+    p.add_argument(
+        "--motion-error", default="0", metavar="LEVEL",
+        help=f"how far moves stray: {', '.join(LEVELS)} (docs/motion.md)",
+    )  # fmt: skip
     p.add_argument("--fps", type=float, default=40.0)
-    p.add_argument("--video", type=Path, help="record the camera to this MP4")
     p.add_argument("--control-port", type=int, default=0)
     p.add_argument("--tilt", type=float, default=0.0, help="camera tilt (degrees)")
     p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")
@@ -531,6 +655,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: serve until SIGTERM, then print the final counters as one JSON line."""
+    exit_with_parent()  # if whoever started us asked: its end is our SIGTERM
     args = _parser().parse_args(argv)
     try:
         server = WorldServer(args)

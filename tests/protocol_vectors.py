@@ -20,12 +20,21 @@ from pathlib import Path
 from typing import Any
 
 from udan.edge import protocol as ep
-from udan.firmware_mock import serial_link
+from udan.firmware_mock import serial_link, wire
 from udan.firmware_mock.core import CarCore, Outcome, Telemetry
 
 PATH = Path(__file__).parents[1] / "docs" / "protocol_vectors.json"
 KEYS = {1: bytes(range(32)), 2: bytes(range(32, 64)), 9: bytes(range(64, 96))}
 MARKER = 42
+# The first command's guidance: cell (3, 4)'s centre as the target (a cell is 2.8/9 m), the car
+# seen 12 mm off it and 2 degrees turned, in a frame taken 18.5 ms before the command.
+GUIDED = {
+    "target": [1.4, 1.089, 0.0],
+    "pose": [1.412, 1.085, 0.0349],
+    "captured_ns": 1_001_000_000 - 18_500_000,
+}
+# A car entering a cell its occupant leaves sideways: it starts half a cell time later.
+DELAYED = {"target": [1.4, 1.711, 0.0], "delay": 0.5}
 # A protocol v1 JOIN of car 1 (session 0x1234ABCD), as a v1 car sends it.
 V1_JOIN = bytes.fromhex("0183030000011234abcd00000001002a00010000000003e85668708df1c8")
 
@@ -55,6 +64,27 @@ def event_dict(event: ep.Event) -> dict[str, Any]:
 
 def _hexes(frames: Any) -> list[str]:
     return [f.hex() for f in frames]
+
+
+def guidance_dict(guidance: wire.Guidance | None) -> dict[str, Any] | None:
+    """A command's target, pose and start delay as the car read them (vector form)."""
+    if guidance is None:
+        return None
+    fields = dataclasses.asdict(guidance).items()
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in fields}
+
+
+def edge_guidance(spec: dict[str, Any] | None) -> ep.Guidance | None:
+    """The edge's guidance for a command step of the vectors (lists for the poses)."""
+    if spec is None:
+        return None
+    pose = spec.get("pose")
+    return ep.Guidance(
+        tuple(spec["target"]),
+        None if pose is None else tuple(pose),
+        spec.get("captured_ns", 0),
+        spec.get("delay", 0.0),
+    )
 
 
 class Script:
@@ -96,6 +126,7 @@ class Script:
                 "verdict": out.verdict,
                 "replies": _hexes(out.replies),
                 "motor": list(out.motor) if out.motor else None,
+                "guidance": guidance_dict(out.guidance),
                 "halt": out.halt,
             }
         )
@@ -139,7 +170,10 @@ class Script:
         if op == "time_request":
             frame = self.edge.encode_time_request(car_id)
         elif op == "command":
-            frame = self.edge.encode_command(car_id, args["action"], args["validity_ns"])
+            guide = args.get("guidance")
+            frame = self.edge.encode_command(
+                car_id, args["action"], args["validity_ns"], edge_guidance(guide)
+            )
         else:
             frame = self.edge.encode_estop(car_id, args["engage"], args["validity_ns"])
         self.edge_steps.append(
@@ -187,8 +221,11 @@ def conversation() -> Script:
     req = s.edge_sends("time_request", 1_000_200_000, car1)
     out = s.to_car("time request", req, 1_300)
     s.to_edge("time response: rtt 200.001 us, offset rounded down", out.replies[0], 1_000_400_001)
-    cmd = s.edge_sends("command", 1_001_000_000, car1, action=0, validity_ns=10_000_000)
-    first_ack = s.to_car("command up, in time", cmd, 2_100).replies[0]
+    cmd = s.edge_sends(
+        "command", 1_001_000_000, car1, action=0, validity_ns=10_000_000, guidance=GUIDED
+    )
+    first_ack = s.to_car("command up with its target and the measured pose, in time", cmd, 2_100)
+    first_ack = first_ack.replies[0]
     dup_ack = s.to_car("the same frame again: duplicate, acked, not executed", cmd, 2_150).replies[
         0
     ]
@@ -204,6 +241,14 @@ def conversation() -> Script:
     s.to_car("a protocol v1 frame: wrong_version", b"\x01" + cmd[1:], 2_240)
     s.to_car("truncated by one byte: malformed", cmd[:-1], 2_250)
     s.to_car("one byte too many: malformed", cmd + b"\x00", 2_260)
+    session_key = ep.derive_session(KEYS[1], nonce("car 1"), nonce("edge 1"))[1]
+    turned = ep.encode(
+        ep.MsgType.COMMAND, car1, s.edge.session(car1), 900, 2_265, session_key,
+        {"action": 0, "deadline_us": 12_000, "guide": 3, "target_x_mm": 1400,
+         "target_y_mm": 1089, "pose_x_mm": 1412, "pose_y_mm": 1085, "pose_heading_mrad": 4000,
+         "pose_age_us": 18_500},
+    )  # fmt: skip
+    s.to_car("signed, but the pose heading is beyond pi: malformed, not executed", turned, 2_265)
     s.to_car("a car->edge frame sent to the car: malformed", first_ack, 2_270)
     s.to_car("a session the car does not hold: wrong_session, no reply", _tamper(cmd, 9, 1), 2_280)
     deadline_cmd = s.edge_sends(
@@ -228,15 +273,17 @@ def conversation() -> Script:
     s.to_car("stop is allowed while latched", stop, 30_200)
     release = s.edge_sends("estop", 1_030_200_000, car1, engage=False, validity_ns=10_000_000)
     s.to_car("estop release, in time", release, 30_300)
-    down = s.edge_sends("command", 1_031_000_000, car1, action=1, validity_ns=10_000_000)
-    s.to_car("command down after release", down, 31_100)
+    down = s.edge_sends(
+        "command", 1_031_000_000, car1, action=1, validity_ns=10_000_000, guidance=DELAYED
+    )
+    s.to_car("command down after release, to start half a cell time later", down, 31_100)
     for i in range(9):
         s.to_car(
             f"replay {i + 1} of 9 at one instant: 8 answered, then the rate limit", down, 200_000
         )
-    s.poll(331_099)
-    s.poll(331_100)
-    watchdog = s.status(332_000, Telemetry(row=5, col=4, battery_mv=8196, done_seq=11))
+    s.poll(431_099)  # the watchdog counts from the move's start: 31 100 + 100 000 us
+    s.poll(431_100)
+    watchdog = s.status(432_000, Telemetry(row=5, col=4, battery_mv=8196, done_seq=11))
     s.to_edge("status with the watchdog flag", watchdog, 1_331_000_000)
     s.to_edge("status with a flipped tag bit: bad_tag", _tamper(watchdog, -1, 1), 1_331_100_000)
     s.to_edge("a protocol v1 JOIN: wrong_version, one line to log", V1_JOIN, 1_331_200_000)
@@ -268,11 +315,11 @@ def conversation() -> Script:
         1_900_000_000,
     )  # fmt: skip
     out = s.to_car(
-        "HELLO to a car in a session: JOIN (cause hello), session kept", renew_hello[0], 400_000
+        "HELLO to a car in a session: JOIN (cause hello), session kept", renew_hello[0], 800_000
     )
     _, offer = s.to_edge("the JOIN the HELLO asked for: an offer", out.replies[0], 1_900_100_000)
-    s.to_car("ACCEPT: the new session is current, the old one kept meanwhile", offer[0], 400_100)
-    confirm = s.status(400_150, Telemetry(row=5, col=4, battery_mv=8196))
+    s.to_car("ACCEPT: the new session is current, the old one kept meanwhile", offer[0], 800_100)
+    confirm = s.status(800_150, Telemetry(row=5, col=4, battery_mv=8196))
     s.to_edge("confirmed: the new session is current, the old one kept 1 s", confirm, 1_900_150_000)
 
     def in_old(seq: int, now_us: int) -> bytes:
@@ -282,18 +329,18 @@ def conversation() -> Script:
 
     s.to_car(
         "a frame of the old session before the edge moved: still taken",
-        in_old(40, 400_200),
-        400_200,
+        in_old(40, 800_200),
+        800_200,
     )
     req = s.edge_sends("time_request", 1_900_300_000, car1)
-    s.to_car("the edge's first frame in the new session: the old one is dropped", req, 400_300)
-    s.to_car("the old session after that: wrong_session", in_old(41, 400_400), 400_400)
+    s.to_car("the edge's first frame in the new session: the old one is dropped", req, 800_300)
+    s.to_car("the old session after that: wrong_session", in_old(41, 800_400), 800_400)
 
     # reboot: the latch and every session are gone; the edge sees a boot JOIN
     s.to_car(
         "estop engage",
         s.edge_sends("estop", 1_901_000_000, car1, engage=True, validity_ns=10_000_000),
-        401_000,
+        801_000,
     )
     rejoin = s.boot(500)
     _, offer = s.to_edge("JOIN after a reboot: an offer", rejoin, 2_000_000_000)
@@ -345,8 +392,14 @@ def frame_vectors(s: Script) -> list[dict[str, Any]]:
         "unknown type": cmd[:1] + b"\x07" + cmd[2:],
         "payload length field wrong": cmd[:2] + b"\x08" + cmd[3:],
         "reserved flags set": cmd[:3] + b"\x01" + cmd[4:],
-        "link id of the other direction": cmd[:23] + b"\x01" + cmd[24:],
+        "link id of the other direction": cmd[:41] + b"\x01" + cmd[42:],
         "unknown action 6": cmd[:14] + b"\x06" + cmd[15:],
+        "unknown guide flag 4": cmd[:23] + b"\x07" + cmd[24:],
+        "target fields without the target flag": cmd[:23] + b"\x02" + cmd[24:],
+        "pose heading beyond pi": cmd[:34] + (3143).to_bytes(2, "big") + cmd[36:],
+        "target heading beyond -pi": cmd[:28] + (-3143).to_bytes(2, "big", signed=True) + cmd[30:],
+        "pose older than a second": cmd[:36] + (1_000_001).to_bytes(4, "big") + cmd[40:],
+        "start delay beyond two cell times": cmd[:40] + bytes([201]) + cmd[41:],
         "car id 0": cmd[:4] + b"\x00\x00" + cmd[6:],
         "session 0 on a command": cmd[:6] + bytes(4) + cmd[10:],
         "seq 0 on a command": cmd[:10] + bytes(4) + cmd[14:],
@@ -378,10 +431,20 @@ def build() -> dict[str, Any]:
     s = conversation()
     frames = frame_vectors(s)
     valid = {f["name"]: bytes.fromhex(f["hex"]) for f in frames if f["valid"]}
+    valid_command = valid["command"]
     car_nonce, edge_nonce = nonce("car 1"), nonce("edge 1")
     session_id, session_key = ep.derive_session(KEYS[1], car_nonce, edge_nonce)
     internal = [
         ("move up seq 2", serial_link.encode_message(serial_link.MOVE, seq=2, action=0)),
+        (
+            "move up seq 3, guided",
+            serial_link.encode_message(
+                serial_link.MOVE,
+                seq=3,
+                action=0,
+                **wire.guide_payload(wire.guidance(ep.decode(valid_command).fields)),
+            ),
+        ),
         ("stop (watchdog)", serial_link.encode_message(serial_link.STOP, reason=1)),
         (
             "state",
@@ -430,6 +493,7 @@ def build() -> dict[str, Any]:
             "marker": MARKER,
             "watchdog_us": s.car.watchdog_us,
             "max_validity_us": s.car.max_validity_us,
+            "cell_time_us": s.car.cell_time_us,
             "nonces": _hexes(s.car_nonces),
             "steps": s.car_steps,
         },

@@ -12,15 +12,20 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from udan.edge import cli
+from udan.edge.calibration import CameraCalibration, save_calibration
+from udan.edge.geometry import ArenaGeometry
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.transport import free_udp_port
 from udan.fleetfile import write_fleet
+from udan.hil.render import CameraModel, Renderer
 from udan.models import bundled_policy
 
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
@@ -57,6 +62,8 @@ def fleet(tmp_path: Path) -> Path:
         ("unknown_transport", "transport"),
         ("report_folder", "does not exist"),
         ("bad_world", "--world must be HOST:PORT"),
+        ("bad_tolerance", "a tolerance must be above 0 and below half a cell"),
+        ("bad_body", "a car's body must be above 0 and smaller than a cell"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(
@@ -79,6 +86,8 @@ def test_bad_input_is_one_line_and_exit_2(
         "unknown_transport": {"--transport": "carrier-pigeon"},
         "report_folder": {"--report": str(tmp_path / "no" / "such" / "r.json")},
         "bad_world": {"--world": "nohost"},
+        "bad_tolerance": {"--settle-mm": "200"},
+        "bad_body": {"--body-mm": "400"},
     }[case]
     opts = {**base, **change}
     argv = [x for k, v in opts.items() if v is not None for x in (k, v)]
@@ -97,10 +106,13 @@ def _ask(port: int, request: dict) -> dict:
 
 
 @contextlib.contextmanager
-def _world_and_edge(tmp_path: Path, fleet: Path) -> Iterator[tuple[int, subprocess.Popen, str]]:
-    """The HIL world and ``udan-edge`` (in a process group of its own, as a shell starts it) as
-    separate processes, every car joined and a few steps made; yields the world's control
-    port, the edge and the perception process's camera URL. Both are stopped afterwards."""
+def _world_and_edge(
+    tmp_path: Path, fleet: Path, extra: Sequence[str] = (), env: Mapping[str, str] | None = None
+) -> Iterator[tuple[int, subprocess.Popen, str]]:
+    """The HIL world and ``udan-edge`` (in a process group of its own, as a shell starts it,
+    with ``extra`` arguments and environment ``env``) as separate processes, every car joined
+    and a few steps made; yields the world's control port, the edge and the perception
+    process's camera URL. Both are stopped afterwards."""
     edge_port, camera = free_udp_port(), f"udan-test-{time.monotonic_ns()}"
     world = subprocess.Popen(
         [
@@ -119,8 +131,10 @@ def _world_and_edge(tmp_path: Path, fleet: Path) -> Iterator[tuple[int, subproce
                 "--fleet", str(fleet), "--listen", f"127.0.0.1:{edge_port}",
                 "--world", f"127.0.0.1:{control}", "--quiet",
                 "--report", str(tmp_path / "edge.json"), *(["--realtime"] if REALTIME else []),
+                *extra,
             ],
-            stderr=subprocess.PIPE, text=True, start_new_session=True,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+            env=env,
         )  # fmt: skip
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
@@ -292,3 +306,88 @@ def test_realtime_refused_is_one_line_and_exit_2(
     assert cli.main(["--sim", "--realtime", "--duration", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "udan-edge: error: --realtime: not permitted (needs root or CAP_SYS_NICE)"
+
+
+def test_a_marker_higher_than_the_fleet_file_says_is_warned_once_in_stderr_and_telemetry(
+    tmp_path: Path, fleet: Path
+) -> None:
+    """Recorded frames of two cars whose markers sit 10 cm up, a fleet file that gives no
+    marker height, the camera's calibration: one line on stderr per car and one telemetry
+    event each, naming the height the markers seem to be at; the run ends with the frames."""
+    geometry = ArenaGeometry()
+    camera = CameraModel(tilt_deg=25)
+    renderer = Renderer(geometry, camera, marker_heights={11: 0.10, 12: 0.10})
+    calibration = tmp_path / "camera.yaml"
+    size = (camera.width, camera.height)
+    save_calibration(
+        calibration, CameraCalibration(renderer.camera_matrix, renderer.dist_coeffs, size)
+    )
+    cars = [(11, *geometry.cell_centre(2, 3), 0.3), (12, *geometry.cell_centre(3, 6), -1.0)]
+    _, png = cv2.imencode(".png", renderer.render(cars, {}))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(110):
+        (frames / f"{k:03d}.png").write_bytes(png.tobytes())
+    telemetry = tmp_path / "t.jsonl"
+    done = _edge(
+        "--camera", str(frames), "--model", str(MODEL), "--fleet", str(fleet),
+        "--calibration", str(calibration), "--telemetry", str(telemetry), "--quiet",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.startswith("vision: ")]
+    events = [json.loads(r) for r in telemetry.read_text().splitlines()]
+    messages = [e["message"] for e in events if e["kind"] == "vision_warning"]
+    assert sorted(lines) == sorted(f"vision: {m}" for m in messages)
+    assert sorted(m.split()[2] for m in messages) == ["11", "12"]
+    assert all(" sits about 0.1" in m or " sits about 0.09" in m for m in messages), messages
+
+
+@pytest.mark.parametrize("perception", ["process", "thread"])
+def test_frames_without_an_arena_are_said_in_stderr_and_telemetry(
+    tmp_path: Path, fleet: Path, perception: str
+) -> None:
+    """Frames in which no calibration marker shows: no car is placed, and after two sweeps one
+    line on stderr and one telemetry event say so and why."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    _, png = cv2.imencode(".png", np.full((1200, 1920), 128, np.uint8))
+    for k in range(30):
+        (frames / f"{k:03d}.png").write_bytes(png.tobytes())
+    telemetry = tmp_path / "t.jsonl"
+    done = _edge(
+        "--camera", str(frames), "--model", str(MODEL), "--fleet", str(fleet),
+        "--telemetry", str(telemetry), "--quiet", "--perception", perception,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    said = "no arena: calibration markers seen: none (3 of 0-3 needed); every car is held"
+    assert [line for line in done.stderr.splitlines() if line.startswith("vision: ")] == [
+        f"vision: {said} until they are"
+    ]
+    events = [json.loads(r) for r in telemetry.read_text().splitlines()]
+    assert [e["message"] for e in events if e["kind"] == "vision_warning"] == [
+        f"{said} until they are"
+    ]
+
+
+@pytest.mark.parametrize("perception", ["process", "thread"])
+def test_a_calibration_for_another_image_size_is_one_line_and_exit_2(
+    tmp_path: Path, fleet: Path, perception: str
+) -> None:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    _, png = cv2.imencode(".png", np.full((1200, 1920), 128, np.uint8))
+    for k in range(3):
+        (frames / f"{k:03d}.png").write_bytes(png.tobytes())
+    renderer = Renderer(ArenaGeometry(), CameraModel())
+    calibration = tmp_path / "camera.yaml"
+    save_calibration(
+        calibration, CameraCalibration(renderer.camera_matrix, renderer.dist_coeffs, (1280, 720))
+    )
+    done = _edge(
+        "--camera", str(frames), "--model", str(MODEL), "--fleet", str(fleet),
+        "--calibration", str(calibration), "--quiet", "--perception", perception,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr == (
+        "udan-edge: error: camera calibration is for 1280x720 frames, the camera gives 1920x1200\n"
+    )

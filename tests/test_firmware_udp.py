@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import signal
 import socket
@@ -18,13 +19,17 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from udan.edge import protocol as ep
+from udan.edge.geometry import ArenaGeometry
 from udan.firmware_mock.cli import _parser
 from udan.firmware_mock.firmware import CarTiming
 from udan.firmware_mock.fleet import CarSpec
 from udan.firmware_mock.udp import MockCar
+from udan.hil.motion import LEVELS
+from udan.hil.world import HilWorld
 
 KEYS = {1: bytes(range(32)), 2: bytes(range(50, 82))}
 MOCK_CLI = [
@@ -124,10 +129,12 @@ async def edge() -> AsyncIterator[EdgeClient]:
 async def make_car(edge: EdgeClient) -> AsyncIterator[Callable[..., Any]]:
     cars: list[MockCar] = []
 
-    async def make(car_id: int = 1, faults: dict[str, Any] | None = None, **timing: Any) -> MockCar:
+    async def make(
+        car_id: int = 1, faults: dict[str, Any] | None = None, world: Any = None, **timing: Any
+    ) -> MockCar:
         spec = CarSpec(car_id, 40 + car_id, KEYS[car_id], faults=faults or {})
         timing.setdefault("cell_time_s", 0.02)
-        car = MockCar(spec, edge=edge.address, timing=CarTiming(**timing), seed=car_id)
+        car = MockCar(spec, edge=edge.address, world=world, timing=CarTiming(**timing), seed=car_id)
         await car.start()
         cars.append(car)
         return car
@@ -442,3 +449,69 @@ def test_cli_defaults_are_the_spec_timings() -> None:
         100,
         250,
     )
+
+
+async def test_a_guided_command_crosses_the_serial_line_and_a_bad_pose_is_dropped_and_counted(
+    edge: EdgeClient, make_car
+) -> None:
+    """A command's target and measured pose reach the motor controller over the pty (the car
+    drives from the measured pose to the target); one whose pose field is out of range is
+    malformed (checked before its tag, spec section 4; the vectors show one signed with the
+    session key): counted, unanswered, never executed."""
+    car = await make_car()
+    await edge.join(1)
+    cell = 2.8 / 9
+    target = ((4 + 0.5) * cell, (3 + 0.5) * cell, 0.0)  # the cell above the start (4, 4)
+    seen = ((4 + 0.5) * cell + 0.02, (4 + 0.5) * cell, 0.0)  # 2 cm right of (4, 4)'s centre
+    frame = edge.proto.encode_command(
+        1, ep.Action.UP, 500_000_000, ep.Guidance(target, seen, time.monotonic_ns())
+    )
+    edge.send(1, frame)
+    await edge.expect(ep.StatusReport, lambda s: s.done_seq == ep.decode(frame).seq)
+    drive = car.controller.drive
+    assert drive.corrections == 1 and drive.pose == (3, 4)
+    assert drive.belief == pytest.approx(target, abs=1e-3)
+    executed = car.counters()["executed"]
+    later = bytearray(edge.proto.encode_command(1, ep.Action.UP, 500_000_000))
+    later[23] = ep.GUIDE_POSE  # the pose given, its heading (bytes 34-35) beyond pi
+    later[34:36] = (3200).to_bytes(2, "big")
+    edge.send(1, bytes(later))
+    assert await edge.quiet(ep.Acked, 0.1) == []
+    counters = car.counters()
+    assert counters["rejected"]["malformed"] == 1 and counters["executed"] == executed
+
+
+async def test_an_estop_mid_move_leaves_the_car_where_it_stopped_until_it_is_released(
+    edge: EdgeClient, make_car
+) -> None:
+    """Through the whole car (UDP, the ESP8266's checks, the pty, the controller) in a world
+    with continuous poses: an ESTOP engaged half-way through a move leaves the car across the
+    border; commands while the stop is latched are refused and nothing moves it; after the
+    release, its next command drives it from where it stands to its target."""
+    geometry = ArenaGeometry()
+    world = HilWorld(geometry, {1: 41}, LEVELS["low"], seed=2)
+    world.place(np.zeros((9, 9), np.uint8), {1: (4, 4)})
+    await make_car(world=world, cell_time_s=0.3, accel_share=0.25)
+    await edge.join(1)
+    target = (*geometry.cell_centre(4, 5), 0.0)
+    ahead = ep.Guidance(target, tuple(world.pose[1]), time.monotonic_ns())
+    edge.send(1, edge.proto.encode_command(1, ep.Action.RIGHT, 500_000_000, ahead))
+    await edge.expect(ep.StatusReport, lambda st: st.moving)
+    await asyncio.sleep(0.14)
+    edge.send(1, edge.proto.encode_estop(1, True))
+    await edge.expect(ep.StatusReport, lambda st: st.faults & ep.Fault.ESTOP and not st.moving)
+    stopped = world.pose[1]
+    border = geometry.cell_centre(4, 4)[0] + geometry.cell_m / 2
+    assert abs(stopped.x - border) < 0.3 * geometry.cell_m and 1 not in world.motion
+    for action in (ep.Action.RIGHT, ep.Action.WAIT):  # refused while latched
+        refused = await edge.command(1, action)
+        assert refused.result is ep.AckResult.ESTOPPED
+    await asyncio.sleep(0.4)
+    assert world.pose[1] == stopped and world.counts["moves"] == 0
+    edge.send(1, edge.proto.encode_estop(1, False, 500_000_000))
+    await edge.expect(ep.Acked, lambda a: a.result is ep.AckResult.ACCEPTED)
+    seen = ep.Guidance(target, tuple(stopped), time.monotonic_ns())
+    frame = edge.proto.encode_command(1, ep.Action.WAIT, 500_000_000, seen)
+    edge.send(1, frame)
+    await edge.expect(ep.StatusReport, lambda st: st.done_seq == ep.decode(frame).seq)
+    assert math.dist(world.pose[1][:2], target[:2]) < 0.02

@@ -39,6 +39,7 @@ from udan.fleetfile import CarEntry, load_fleet
 
 FAST = CarTiming(cell_time_s=0.02, watchdog_s=0.3, status_period_s=0.1, join_period_s=0.1)
 MOVES = (UP, DOWN, LEFT, RIGHT)
+MS = 1_000_000
 
 
 def fleet(n: int, **fields: Any) -> list[CarEntry]:
@@ -179,6 +180,30 @@ async def test_dispatch_moves_and_move_finished(loop_fleet: LoopFleet, clock: Fa
     poses = [(link.state(c).status.row, link.state(c).status.col) for c in (1, 2, 3)]
     assert poses == [(3, 4), (4, 3), (4, 4)]
     assert [loop_fleet.cars[c].drive.executed for c in (1, 2, 3)] == [1, 1, 1]
+
+
+async def test_a_car_entering_a_cell_is_sent_its_command_only_once_the_leaver_accepted(
+    loop_fleet: LoopFleet, clock: FakeClock
+) -> None:
+    """Car 2 follows car 1 and car 3 follows car 2: each command leaves after the ACK of the
+    one ahead. When car 1 cannot accept (it stopped answering), neither follower is sent
+    anything: nobody drives into a car that stays."""
+    link = loop_fleet.link
+    now = clock()  # a long validity: this is about the order, and the machine may be loaded
+    report = await link.dispatch({1: UP, 2: UP, 3: UP}, now, now + 300 * MS, after={2: 1, 3: 2})
+    _check_counts(report)
+    assert report.on_time == 3
+    cars = report.cars
+    assert cars[1].acked_ns <= cars[2].first_sent_ns and cars[2].acked_ns <= cars[3].first_sent_ns
+    await until(link, all_finished(link, (1, 2, 3)))
+    loop_fleet.cars[1].firmware.apply_faults({"dead_at_s": 0})
+    sent = {c: len(loop_fleet.commands_sent(c)) for c in (2, 3)}
+    now = clock()
+    report = await link.dispatch({1: UP, 2: UP, 3: UP}, now, now + 50 * MS, after={2: 1, 3: 2})
+    _check_counts(report)
+    assert [report.cars[c].result for c in (1, 2, 3)] == ["no_ack", "no_leader", "no_leader"]
+    assert report.missed == 3
+    assert {c: len(loop_fleet.commands_sent(c)) for c in (2, 3)} == sent
 
 
 async def test_lost_frames_are_resent_identically_and_run_once(clock: FakeClock) -> None:

@@ -124,4 +124,11 @@ def test_configuration_lists_every_package_folder() -> None:
             expected.add(".".join((package, *rel)))
     shipped = {f"udan.models.{p.parent.name}" for p in (ROOT / "models").glob("*/policy.onnx")}
     assert set(CONFIG["packages"]) == expected | shipped
-    assert CONFIG["package-data"] == {p: ["policy.onnx"] for p in shipped}
+    assert CONFIG["package-data"] == {
+        **{p: ["policy.onnx"] for p in shipped},
+        "udan.edge": ["static/*"],  # the live page's files, read with importlib.resources
+    }
+    from udan.edge.web import _static
+
+    for path in (ROOT / "edge" / "static").iterdir():
+        assert _static(path.name) == path.read_bytes()

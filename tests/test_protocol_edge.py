@@ -270,3 +270,27 @@ def test_a_jump_in_sequence_numbers_costs_no_time(edge: ep.EdgeProtocol) -> None
     assert time.perf_counter() - started < 0.05  # it took seconds and gigabytes before
     car.seq = 2**32 - 13
     assert isinstance(edge.receive(car.status(1_000)), ep.StatusReport)  # inside the window
+
+
+def test_guidance_fields_are_what_the_spec_says_and_never_out_of_range() -> None:
+    """Millimetres and milliradians, headings wrapped into -pi..pi; a pose older than a
+    second (or off the 16-bit range) is left out rather than sent; a target or start delay no
+    frame can carry is a bug: ValueError before anything is sent."""
+    now = 5_000_000_000
+    fields = ep.guide_fields(
+        ep.Guidance((1.4, 1.0889, 6.2), (1.4123, 1.0851, -3.5), now - 18_500_000, 0.65), now
+    )
+    assert fields == {
+        "guide": 3, "target_x_mm": 1400, "target_y_mm": 1089, "target_heading_mrad": -83,
+        "pose_x_mm": 1412, "pose_y_mm": 1085, "pose_heading_mrad": 2783, "pose_age_us": 18_500,
+        "delay_pct": 65,
+    }  # fmt: skip
+    stale = ep.guide_fields(ep.Guidance((1.4, 1.0, 0.0), (1.4, 1.0, 0.0), now - 1_000_001_000), now)
+    assert stale["guide"] == ep.GUIDE_TARGET and stale["pose_age_us"] == 0
+    far = ep.guide_fields(ep.Guidance((1.4, 1.0, 0.0), (40.0, 1.0, 0.0), now), now)
+    assert far["guide"] == ep.GUIDE_TARGET
+    with pytest.raises(ValueError, match="target"):
+        ep.guide_fields(ep.Guidance((33.0, 1.0, 0.0)), now)
+    with pytest.raises(ValueError, match="delay"):
+        ep.guide_fields(ep.Guidance((1.0, 1.0, 0.0), delay=2.5), now)
+    assert ep.guide_fields(None, now) == dict.fromkeys(fields, 0)

@@ -9,27 +9,14 @@ bench prints comes from a harness that is itself tested.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-from types import ModuleType
-
+import benches
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from udan.edge import protocol as ep
 from udan.firmware_mock import wire
 
-
-def _load_bench() -> ModuleType:
-    path = Path(__file__).parents[1] / "bench" / "protocol.py"
-    spec = importlib.util.spec_from_file_location("bench_protocol", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load_bench()
+bench = benches.load("protocol")
 CAR, EDGE, GENUINE, CAR_NOW_US = bench.genuine_frames()
 GENUINE_SET = frozenset(GENUINE)
 

@@ -72,6 +72,7 @@ def test_car_core_replays_the_conversation() -> None:
         spec["marker"],
         watchdog_us=spec["watchdog_us"],
         max_validity_us=spec["max_validity_us"],
+        cell_time_us=spec["cell_time_us"],
         nonce=lambda: next(nonces),
     )
     for step in spec["steps"]:
@@ -83,6 +84,7 @@ def test_car_core_replays_the_conversation() -> None:
             assert out.verdict == step["verdict"], step["note"]
             assert [r.hex() for r in out.replies] == step["replies"], step["note"]
             assert (list(out.motor) if out.motor else None) == step["motor"], step["note"]
+            assert protocol_vectors.guidance_dict(out.guidance) == step["guidance"], step["note"]
             assert out.halt == step["halt"], step["note"]
         elif op == "poll":
             assert core.poll(now) == step["tripped"]
@@ -116,7 +118,10 @@ def test_edge_core_replays_the_conversation() -> None:
         elif op == "time_request":
             assert edge.encode_time_request(step["car_id"]).hex() == step["send"]
         elif op == "command":
-            frame = edge.encode_command(step["car_id"], step["action"], step["validity_ns"])
+            guidance = protocol_vectors.edge_guidance(step.get("guidance"))
+            frame = edge.encode_command(
+                step["car_id"], step["action"], step["validity_ns"], guidance
+            )
             assert frame.hex() == step["send"]
         else:
             frame = edge.encode_estop(step["car_id"], step["engage"], step["validity_ns"])

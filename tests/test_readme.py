@@ -36,6 +36,8 @@ EXTRA: dict[str, list[str]] = {
     "udan-edge": ["--quiet"],
     "udan-hil run": ["--episode-steps", "5"],
 }
+# Flags whose README value is replaced where given, never added: a fixed port may be taken.
+REPLACE: dict[str, str] = {"--web": "127.0.0.1:0"}
 TRAINING = ("udan-train", "udan-eval", "udan-export")
 HARDWARE_FLAGS = ("--camera", "--realtime")
 
@@ -69,6 +71,9 @@ def shrunk(words: list[str]) -> list[str]:
             out[out.index(flag) + 1] = value
         else:
             out += [flag, value]
+    for flag, value in REPLACE.items():
+        if flag in out:
+            out[out.index(flag) + 1] = value
     return [str(BIN / out[0]), *out[1:], *EXTRA.get(key, [])]
 
 

@@ -56,6 +56,26 @@ def test_arena_fills_the_frame(tilted):
     assert np.ptp(outer[:, 1]) > 0.8 * h
 
 
+@pytest.mark.parametrize("tilt", [0, 30, 60])
+def test_a_camera_with_a_fixed_lens_stands_back_when_tilted(tilt):
+    """With the lens that frames the arena from 3 m overhead, a tilted camera stands farther
+    back, just far enough that the arena still fits the frame as tightly."""
+    lens = CameraModel().intrinsics(GEOMETRY)[0][0, 0]
+    camera = CameraModel(tilt_deg=tilt, focal_px=lens)
+    renderer = Renderer(GEOMETRY, camera)
+    assert renderer.camera_matrix[0, 0] == lens
+    standoff = camera.standoff(GEOMETRY)
+    centre = np.array([GEOMETRY.width_m / 2, GEOMETRY.height_m / 2, 0.0])
+    assert np.linalg.norm(camera.position(GEOMETRY) - centre) == pytest.approx(standoff)
+    if tilt == 0:
+        assert standoff == 3.0
+    else:
+        assert 3.1 < standoff < 3.5
+    outer = renderer.project(GEOMETRY.corner_points().reshape(-1, 2))
+    half = np.array([camera.width - 1, camera.height - 1]) / 2
+    assert (np.abs(outer - half).max(0) / half).max() == pytest.approx(camera.fill, abs=0.005)
+
+
 def test_frame_format_and_cars_leave_no_trace():
     """Grayscale uint8 H x W; a car drawn in one frame is gone from the next (the renderer
     restores its background), and without noise equal scenes render identically."""

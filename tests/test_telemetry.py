@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from udan.edge.telemetry import Histogram, Telemetry
+from udan.edge.telemetry import DEADLINE_NS, Histogram, Telemetry
 
 
 def test_histogram_percentiles_within_a_bin_of_the_exact_ones() -> None:
@@ -59,3 +59,41 @@ def test_memory_is_sampled_every_ten_seconds_of_the_run(tmp_path) -> None:
     assert memory["peak"] >= max(memory["end"], memory["after_1min"])
     lines = [json.loads(line) for line in (tmp_path / "t.jsonl").read_text().splitlines()]
     assert sum(line["kind"] == "memory" for line in lines) == 7
+
+
+def test_buckets_count_at_or_below_each_edge_and_the_deadline_is_one() -> None:
+    hist = Histogram()
+    samples = [100_000, DEADLINE_NS, DEADLINE_NS + 1, 3_000_000, 2_000_000_000]
+    for ns in samples:
+        hist.add(ns)
+    cumulative = hist.cumulative()
+    edges = list(cumulative["le_ns"])
+    assert DEADLINE_NS in edges
+    for edge, count in zip(edges, cumulative["at_most"], strict=False):
+        assert count == sum(ns <= edge for ns in samples)
+    assert cumulative["at_most"][-1] == len(samples)  # +Inf
+    assert cumulative["sum_s"] == sum(samples) / 1e9
+
+
+def test_totals_are_what_the_report_says_so_far(tmp_path) -> None:
+    tel = Telemetry(tmp_path / "t.jsonl", live=False)
+    tel.frame(0, captured_ns=0, state_ns=2_000_000, seen=3, dropped=0, uncertain=1, vision_ns=10)
+    record = {
+        "t_ns": time.monotonic_ns(), "cars": 2, "state_to_commands_ns": 400_000,
+        "on_time": 1, "missed": 1, "outcomes": {"1": "on_time", "2": "missed"},
+        "sends": {"1": 1, "2": 0}, "late_cars": [2],
+    }  # fmt: skip
+    tel.step(record)
+    totals, report = tel.totals(), tel.report()
+    tel.close()
+    assert totals["counts"] == report["counts"]
+    assert totals["counts"]["sightings_found"] == 2 and totals["counts"]["sightings_uncertain"] == 1
+    assert totals["per_car"] == report["per_car"]
+    assert totals["per_car"] == {
+        "1": {"on_time": 1, "sent": 1},
+        "2": {"missed": 1, "late": 1},
+    }
+    decision = totals["histograms"]["state_to_commands"]
+    assert decision["at_most"][-1] == report["spans"]["state_to_commands"]["count"] == 1
+    assert totals["histograms"]["vision"]["at_most"][-1] == report["vision"]["count"] == 1
+    json.dumps(totals)

@@ -82,6 +82,11 @@ def test_no_faults_every_command_on_time_and_scores_match_the_simulation(
     assert sum(not r["rehearsed"] for r in steps) <= grew + 2
     for name in ("latency.png", "misses.png", "scores.png"):
         assert (tmp_path / name).stat().st_size > 1000
+    # the same on one page, readable offline: the plots inside it, nothing to fetch
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('src="data:image/png;base64,') == 3
+    assert "http://" not in page and "https://" not in page and "<script" not in page
+    assert f"<td>{head['episodes']}</td>" in page
 
 
 def test_forged_and_malformed_datagrams_are_dropped_and_counted(tmp_path: Path) -> None:
@@ -177,9 +182,61 @@ def test_reboot_stall_and_fleet_changes_mid_run(tmp_path: Path) -> None:
     assert s["edge"]["counts"]["camera_stall"] >= 1
 
 
+def test_a_car_stopped_mid_move_is_recentred_and_back_under_the_policy_within_2_s(
+    tmp_path: Path,
+) -> None:
+    """Lab-level cars; car 1's next move after 1 s stops half-way (the ``cut`` fault): the
+    camera sees it across a border, the edge re-centres it into a cell (the one its command
+    was taking it to) before the policy acts on it again, and within 2 s a step commands it
+    again, from a cell, as if nothing had happened. Nothing collides."""
+    s = run_hil(
+        tmp_path, "--cars", "1", "--obstacles", "0", "--episodes", "3",
+        "--motion-error", "lab", "--faults", "cut=car1@1s",
+    )  # fmt: skip
+    _assert_safe(s)
+    stops = [stop for stop in s["world"]["state"]["stops"] if stop[0] == 1]
+    assert len(stops) == 1  # the cut: the only move that ended short
+    _, cut_ns, x, y, _ = stops[0]
+    cell = 2.8 / 9
+    across = min(abs(x / cell - round(x / cell)), abs(y / cell - round(y / cell))) * cell
+    assert across < 0.05  # its centre within 5 cm of a border: standing across it
+    records = telemetry(tmp_path)
+    rounds = [r for r in records if r["kind"] == "recentre" and r["t_ns"] > cut_ns]
+    assert rounds and rounds[0]["cars"] == [1] and rounds[0]["offsets"]["1"][0] > 100
+    back = next(
+        r
+        for r in records
+        if r["kind"] == "step" and r["t_ns"] > rounds[0]["t_ns"] and r["outcomes"]["1"] == "on_time"
+    )
+    assert back["t_ns"] - cut_ns < 2e9
+    assert back["offsets"]["1"][0] <= 30 and back["stopped"] == 0 and not back["uncertain"]
+    assert s["motion"]["offcentre_max_mm_at_decisions"] <= 30
+
+
+@pytest.mark.slow
+def test_lab_cars_are_kept_on_their_cells_without_a_collision(tmp_path: Path) -> None:
+    """A minute of five `lab` cars (errors, slips; cells of 100 ms): every step decides on
+    cars within the settling tolerance, the cars that strayed beyond it were re-centred, no
+    body touched another, and the drift of the last minute is no worse than the first's."""
+    s = run_hil(
+        tmp_path, "--cars", "5", "--obstacles", "0-9", "--duration", "60",
+        "--motion-error", "lab", "--cell-time-ms", "100", timeout=300,
+    )  # fmt: skip
+    _assert_safe(s)
+    head, motion = s["headline"], s["motion"]
+    assert head["offcentre_max_mm_at_decisions"] <= 30
+    assert head["heading_max_deg_at_decisions"] <= 5
+    assert motion["recentre_rounds"] > 0 and head["offcentre_max_mm_seen"] > 30
+    minutes = motion["offcentre_by_minute"]
+    assert minutes[-1]["offcentre_p50_mm"] <= 2 * minutes[0]["offcentre_p50_mm"] + 2
+    assert max(head["longest_uncommanded_s"].values()) < 2
+    assert (tmp_path / "motion.png").stat().st_size > 1000
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
+        (["--motion-error", "bumpy"], "unknown motion level"),
         (["--task", "chess"], "unknown task"),
         (["--faults", "loss=lots"], "not a probability"),
         (["--report", "/proc/no/such/folder"], "report folder"),

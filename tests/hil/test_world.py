@@ -12,7 +12,8 @@ import pytest
 from udan.edge.camera import open_camera
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.vision import Vision
-from udan.envs.rules import OBSTACLE, RIGHT
+from udan.envs.rules import OBSTACLE
+from udan.firmware_mock.motor import Pose, Trajectory
 from udan.hil.world import CameraProcess, HilWorld
 
 pytestmark = pytest.mark.hil
@@ -20,18 +21,25 @@ pytestmark = pytest.mark.hil
 MARKERS = {1: 10, 2: 11}
 
 
+def _grid_move(cell: tuple[int, int], to: tuple[int, int], t0: int) -> Trajectory:
+    """A controller's plan of a grid move in one cell time (200 ms), at constant speed."""
+    g = ArenaGeometry()
+    start, end = Pose(*g.cell_centre(*cell), 0.0), Pose(*g.cell_centre(*to), 0.0)
+    return Trajectory(start, end, t0, 200_000_000)
+
+
 def test_a_mirror_fed_by_the_listener_draws_the_same_world() -> None:
-    world = HilWorld(ArenaGeometry(), MARKERS, cell_time_s=0.2)
-    mirror = HilWorld(ArenaGeometry(), MARKERS, cell_time_s=0.2)
+    world = HilWorld(ArenaGeometry(), MARKERS)
+    mirror = HilWorld(ArenaGeometry(), MARKERS)
     world.listener = mirror.restore
     layout = np.zeros((9, 9), np.uint8)
     layout[4, 4] = OBSTACLE
     world.place(layout, {1: (0, 0)})
     world.add(2, (8, 8))
-    world.begin(1, (0, 0), RIGHT)
     now = time.monotonic_ns()
+    world.begin(1, _grid_move((0, 0), (0, 1), now))
     assert mirror.snapshot(now) == world.snapshot(now)
-    assert world.move(1, (0, 0), RIGHT) == (0, 1)
+    assert world.end(1) and world.state()["pose"]["1"] == [0, 1]
     world.remove(2)
     assert mirror.snapshot(now) == world.snapshot(now)
     cars, cells = mirror.snapshot(now)
@@ -39,17 +47,15 @@ def test_a_mirror_fed_by_the_listener_draws_the_same_world() -> None:
 
 
 def test_the_camera_process_shows_the_world_and_stops_cleanly() -> None:
-    world = HilWorld(ArenaGeometry(), MARKERS, cell_time_s=0.2)
+    world = HilWorld(ArenaGeometry(), MARKERS)
     world.place(np.zeros((9, 9), np.uint8), {1: (2, 3)})
     name = f"udan-test-{uuid.uuid4().hex[:8]}"
     config = {
         "model": {"noise_sigma": 2.0},
         "geometry": ArenaGeometry(),
         "name": name,
-        "video": None,
         "fps": 40.0,
         "markers": MARKERS,
-        "cell_time_s": 0.2,
     }
     camera = CameraProcess(world, config)
     try:
