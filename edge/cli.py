@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -411,7 +412,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # outside the run: no car is being driven
         print(f"{PROG}: stopped by a signal while starting or closing", file=sys.stderr)
         return 0
-    except Exception as err:  # every car got its emergency stop in the runtime's finally
+    except Exception as err:  # a bug (every car got its emergency stop in the runtime's finally)
+        traceback.print_exc()  # what a bug report needs; the last line says it in one
         print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
         return 1
     report["scheduler"] = scheduler()

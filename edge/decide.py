@@ -335,6 +335,7 @@ class DecisionStep:
         if moving:
             in_move = np.fromiter((c in moving for c in cars.tolist()), bool, len(cars))
             doing = np.fromiter((moving[c] for c in cars[in_move].tolist()), np.int64)
+            doing[doing > WAIT] = WAIT  # halted by the guard's stop: it holds where it stands
             heading_for = car_pos[in_move] + ACTION_DELTAS[doing]
             others = others + heading_for.tolist()
             expected = np.where(in_move[:, None], -1, expected)

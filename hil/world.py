@@ -156,6 +156,8 @@ class HilWorld:
         self.counts = {"moves": 0, "blocked": 0, "collisions": 0, "aborted": 0, "slips": 0}
         self.stops: deque[list[float]] = deque(maxlen=STOPS_KEPT)
         """Where moves were cut short: [car, t_ns, x, y, heading], the latest ones."""
+        self.refusals: deque[list[Any]] = deque(maxlen=STOPS_KEPT)
+        """Moves the rules refused: [car, t_ns, start row, col, end row, col, why, holders]."""
         self.contacts: deque[list[float]] = deque(maxlen=STOPS_KEPT)
         """Every collision: [t_ns, car, other, x, y, heading, other's x, y, heading]."""
         self.settled: dict[int, list[tuple[float, float]]] = {}
@@ -236,13 +238,18 @@ class HilWorld:
             if move is not None and car_id in self.pose:
                 dest = self._cell(move.end)
                 inside = 0 <= dest[0] < self.geometry.rows and 0 <= dest[1] < self.geometry.cols
-                held = any(
-                    c != car_id
+                holders = [
+                    c
+                    for c, p in self.pose.items()
+                    if c != car_id
                     and self._cell(p) == dest
                     and not (c in self.motion and self._cell(self.motion[c].start) == dest)
-                    for c, p in self.pose.items()
-                )
-                moved = inside and self.layout[dest] == FREE and not held
+                ]
+                moved = inside and self.layout[dest] == FREE and not holders
+                if not moved:
+                    why = "held" if holders else "off the grid" if not inside else "not free"
+                    start = self._cell(move.start)
+                    self.refusals.append([car_id, now, *start, *dest, why, *holders])
                 self.pose[car_id] = move.end if moved else move.start
                 self.counts["moves" if moved else "blocked"] += 1
                 self._settled(car_id, self.pose[car_id], now)
@@ -292,8 +299,8 @@ class HilWorld:
             before = np.concatenate([[pair in self._touching], contact[:-1]])
             for k in np.flatnonzero(contact & ~before):
                 self.counts["collisions"] += 1
-                poses = np.round(np.concatenate([a[k], b[k]]), 4).tolist()
-                self.contacts.append([int(times[k]), *pair, *poses])
+                where = np.round(np.concatenate([a[k], b[k]]), 4).tolist()
+                self.contacts.append([int(times[k]), *pair, *where])
             if contact[-1]:
                 touching.add(pair)
         self._touching = touching
@@ -362,6 +369,7 @@ class HilWorld:
                 "moving": sorted(self.motion),
                 "counts": dict(self.counts),
                 "stops": list(self.stops),
+                "refusals": list(self.refusals),
                 "contacts": list(self.contacts),
                 "settled": {str(c): m for c, m in self.settled.items()},
             }

@@ -248,6 +248,11 @@ def test_decision_step_handles_joins_leaves_and_moving_cars() -> None:
     assert d.cars == (7,) and d.commands.shape == (1,)
     d = step.decide(FleetState({7: 0, 9: 2}, {9}, {7: (6, 4), 9: (8, 8)}, static, moving={7: UP}))
     assert d.cars == (7, 9) and d.commands[0] == WAIT  # a car still moving is not re-commanded
+    # a car the guard stopped mid-move is still executing that stop: it holds its cell
+    d = step.decide(
+        FleetState({7: 0, 9: 2}, set(), {7: (6, 4), 9: (8, 8)}, static, moving={7: STOP})
+    )
+    assert d.commands[0] == WAIT and d.targets[0].tolist() == [6, 4]
     d = step.decide(FleetState({9: 2}, set(), {9: (8, 8)}, static))
     assert d.cars == (9,)
     d = step.decide(FleetState({8: 0, 9: 2}, {8}, {8: (5, 0), 9: (8, 8)}, static))

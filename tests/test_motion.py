@@ -196,3 +196,19 @@ async def test_an_estop_mid_move_leaves_the_car_where_it_stopped_until_it_is_rel
     while drive.done_seq != 2:
         await asyncio.sleep(0.005)
     assert math.dist(world.pose[1][:2], _centre((4, 5))[:2]) < 0.02
+
+
+def test_two_collisions_in_one_sweep_are_each_counted_once() -> None:
+    """Two pairs of cars that touch between the same two events: both contacts are counted
+    and recorded with where the bodies were, and touching on is not counted again."""
+    world = HilWorld(GEOMETRY, {1: 10, 2: 11, 3: 12, 4: 13})
+    world.place(np.zeros((9, 9), np.uint8), {1: (2, 2), 2: (2, 3), 3: (5, 2), 4: (5, 3)})
+    t0 = time.monotonic_ns()
+    for car, row in ((1, 2), (3, 5)):
+        world.begin(car, Trajectory(_centre((row, 2)), _centre((row, 3)), t0, 100_000_000))
+    time.sleep(0.15)
+    world.abort(1)
+    world.abort(3)
+    assert world.counts["collisions"] == 2
+    assert sorted(c[1:3] for c in world.contacts) == [[1, 2], [3, 4]]
+    assert all(len(c) == 9 for c in world.contacts)
