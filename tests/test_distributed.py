@@ -21,7 +21,7 @@ from test_train import TINY, one_line_exit_2, quiet, run_cli
 from udan.budget import planned_counts
 from udan.checkpoint import load_checkpoint, load_model
 from udan.cluster import PROBE_SECONDS, ScaleError, import_ray, ray_session
-from udan.distributed import RolloutWorker
+from udan.distributed import POOLS, LocalPool, Rollout, RolloutWorker, WorkerLost
 from udan.evaluate import CheckpointPolicy, evaluate
 from udan.train import EpisodeReplay, TrainConfig, build, train
 
@@ -71,6 +71,68 @@ def test_workers_have_seeds_of_their_own_and_act_with_the_weights_they_get():
     changed = {k: v + torch.randn(v.shape, generator=noise) for k, v in weights.items()}
     moved = RolloutWorker(cfg, model.spec, 0).play(changed, 0.0)
     assert not np.array_equal(first.episodes["actions"], moved.episodes["actions"])
+
+
+class FaultyPool(LocalPool):
+    """The in-process pool with the two faults a cluster can bring: the worker with serial 1
+    dies while its second rollout is in flight (what Ray reports for a killed actor), and
+    worker 0's second rollout is delivered twice (what a retried call would do)."""
+
+    def __init__(self, cfg: TrainConfig, rollout_bytes: int) -> None:
+        super().__init__(cfg, rollout_bytes)
+        self.again: list[tuple[int, Rollout]] = []
+
+    def next(self, timeout: float) -> tuple[int, Rollout | WorkerLost] | None:
+        if self.again:
+            return self.again.pop()
+        got = super().next(timeout)
+        if got is None:
+            return None
+        slot, played = got
+        if (played.worker, played.index) == (1, 1):
+            return slot, WorkerLost(1, "killed")
+        if (played.worker, played.index) == (0, 1):
+            self.again.append(got)
+        return got
+
+
+def test_a_lost_worker_is_replaced_and_no_episode_is_counted_twice(tmp_path, monkeypatch):
+    monkeypatch.setitem(POOLS, "local", FaultyPool)
+    said = []
+    cfg = TrainConfig(steps=1600, out=str(tmp_path / "w"), **TINY, **LOCAL)
+    ckpt = load_checkpoint(train(cfg, log=lambda *a, **k: said.append(a[0] if a else "")))
+    ledger = ckpt["workers"]
+    assert ckpt["progress"]["steps"] == 1600
+    assert ledger["lost"] == 1 and ledger["refused"] == 1 and ledger["started"] == 3
+    assert ledger["rollouts"]["1"] == 1 and set(ledger["rollouts"]) == {"0", "1", "2"}
+    assert sum(ledger["rollouts"].values()) * cfg.n_envs == ckpt["progress"]["episodes"]
+    assert ckpt["progress"]["updates"] == planned_counts(cfg, 50)["updates"]
+    assert [line.strip() for line in said if "lost" in line] == [
+        "worker 1 lost (killed); worker 2 takes over"
+    ]
+
+
+class DyingPool(LocalPool):
+    """Each worker dies with its third rollout in flight, and every replacement at once, as
+    on a cluster that has lost its nodes for good."""
+
+    def next(self, timeout: float) -> tuple[int, Rollout | WorkerLost] | None:
+        got = super().next(timeout)
+        if got is not None and (got[1].worker >= 2 or got[1].index >= 2):
+            return got[0], WorkerLost(got[1].worker, "node lost")
+        return got
+
+
+def test_workers_lost_in_a_row_stop_the_run_with_a_checkpoint(tmp_path, monkeypatch):
+    monkeypatch.setitem(POOLS, "local", DyingPool)
+    cfg = TrainConfig(steps=1600, out=str(tmp_path / "w"), **TINY, **LOCAL)
+    with pytest.raises(ScaleError, match=r"^4 workers lost in a row \(the last: node lost\); "
+                       "checkpoint written at 800 steps$"):  # fmt: skip
+        train(cfg, log=quiet)
+    ckpt = load_checkpoint(tmp_path / "w" / "checkpoint.pt")
+    assert ckpt["progress"]["steps"] == 800 and ckpt["workers"]["lost"] == 4
+    assert ckpt["workers"]["started"] == 5  # two, and three replacements
+    counted_once(ckpt)
 
 
 def test_a_run_with_workers_resumes_with_new_serials_and_can_go_on_in_one_process(tmp_path):
@@ -133,7 +195,6 @@ def test_progress_csv_starts_afresh_and_drops_rows_a_resume_plays_again(tmp_path
         (["--workers", "2", "--algo", "coma", "--agents", "3"], "coma learns on-policy"),
         (["--workers", "2", "--address", "local", "--broadcast-every", "0"], "--broadcast-every"),
         (["--workers", "2", "--address", "ray://nohost"], "expected ray://HOST:PORT"),
-        (["--workers", "2", "--address", "127.0.0.1:1"], "no Ray cluster answers there"),
     ],
 )
 def test_bad_worker_input(args, fragment, tmp_path):
@@ -141,14 +202,22 @@ def test_bad_worker_input(args, fragment, tmp_path):
     assert not (tmp_path / "r" / "checkpoint.pt").exists()
 
 
-def test_a_silent_address_is_one_line(tmp_path):
-    """Something listens there but never answers as Ray: Ray alone would wait for minutes."""
+def test_an_unreachable_address_is_one_line_within_10_s_start_up_included(tmp_path):
+    """The whole command: a refused port, and something that listens there but never answers as
+    Ray (the slower case: the probe's deadline), where Ray alone would wait for minutes."""
     with socket.socket() as silent:
         silent.bind(("127.0.0.1", 0))
         silent.listen()
-        address = f"127.0.0.1:{silent.getsockname()[1]}"
-        proc = run_cli("--steps", 100, "--workers", 2, "--address", address, "--out", tmp_path)
-    one_line_exit_2(proc, "what answers there is not a Ray cluster")
+        quiet_port = f"127.0.0.1:{silent.getsockname()[1]}"
+        for address, fragment in (
+            ("127.0.0.1:1", "no Ray cluster answers there"),
+            (quiet_port, "what answers there is not a Ray cluster"),
+        ):
+            started = time.monotonic()
+            proc = run_cli("--steps", 100, "--workers", 2, "--address", address, "--out", tmp_path)
+            assert time.monotonic() - started < 10, address
+            one_line_exit_2(proc, fragment)
+    assert not any(tmp_path.iterdir())  # nothing written
 
 
 def test_an_address_that_does_not_answer_is_given_up_within_its_deadline():

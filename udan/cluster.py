@@ -26,8 +26,9 @@ class ScaleError(ValueError):
 
 
 #: An ``--address`` where nothing answers, or nothing that speaks gRPC, is reported within
-#: this many seconds of trying (with the command's start-up, within 10 s).
-PROBE_SECONDS = 6.0
+#: this many seconds of trying: with the command's start-up (2 s, more on a loaded machine),
+#: within 10 s. A cluster's GCS or client server answers a probe in milliseconds.
+PROBE_SECONDS = 4.0
 #: Joining what answers there may take longer (a Ray client server starts a process for each
 #: client): it is given up after this many seconds.
 JOIN_SECONDS = 60.0
@@ -40,6 +41,10 @@ MIN_OBJECT_STORE = 80 * 1024**2
 RAY_ENVIRONMENT = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token"}
 
 
+#: What a command asked for workers says when the ``scale`` extra is not installed.
+NEEDS_RAY = "workers need Ray: pip install 'udan-edge[scale]' (Ray is an optional extra)"
+
+
 def import_ray():
     """The ``ray`` module, imported with :data:`RAY_ENVIRONMENT`; :class:`ScaleError` naming
     the extra when it is not installed."""
@@ -48,9 +53,7 @@ def import_ray():
     try:
         import ray
     except ImportError:
-        raise ScaleError(
-            "workers need Ray: pip install 'udan-edge[scale]' (Ray is an optional extra)"
-        ) from None
+        raise ScaleError(NEEDS_RAY) from None
     return ray
 
 
@@ -68,8 +71,10 @@ def check_address(address: str, timeout: float, name: str = "") -> None:
     except OSError as err:
         reason = err.strerror or type(err).__name__
         raise ScaleError(f"--address {name}: no Ray cluster answers there ({reason})") from None
-    import grpc
-
+    try:
+        import grpc  # comes with Ray's client (the scale extra)
+    except ImportError:
+        raise ScaleError(NEEDS_RAY) from None
     with grpc.insecure_channel(f"{host}:{port}") as channel:
         try:
             grpc.channel_ready_future(channel).result(timeout - (time.monotonic() - started))
@@ -103,12 +108,11 @@ def auto_address() -> str:
 
 
 def _join(ray, address: str) -> None:
-    """``ray.init(address)``, once :func:`check_address` found it answering, within
-    :data:`JOIN_SECONDS`, or :class:`ScaleError`."""
+    """``ray.init(address)``, once :func:`check_address` found it answering (``ray_session``
+    probed any other address before importing Ray), within :data:`JOIN_SECONDS`, or
+    :class:`ScaleError`."""
     if address == "auto":
         check_address(auto_address(), PROBE_SECONDS, "auto")
-    else:
-        check_address(address, PROBE_SECONDS)
     outcome: dict[str, BaseException | None] = {}
 
     def connect() -> None:
@@ -143,6 +147,8 @@ def ray_session(cpus: int, address: str = "", object_store_bytes: int = 0) -> It
     store of ``object_store_bytes`` (at least Ray's minimum), Ray's logs in its session folder
     only. With ``address``: that cluster joined. Ray is shut down on the way out.
     """
+    if address and address != "auto":
+        check_address(address, PROBE_SECONDS)  # before Ray's import: a bad address fails fast
     ray = import_ray()
     if ray.is_initialized():
         raise ScaleError("Ray is already running in this process")

@@ -204,10 +204,10 @@ class RayPool(WorkerPool):
 
     def __init__(self, cfg: TrainConfig, rollout_bytes: int) -> None:
         super().__init__(cfg, rollout_bytes)
-        self.ray = import_ray()
         self.stack = ExitStack()
         store = 3 * max(cfg.workers, 1) * rollout_bytes
         self.cpus = self.stack.enter_context(ray_session(cfg.workers, cfg.address, store))
+        self.ray = import_ray()
         self.actors: dict[int, Any] = {}
         self.pending: dict[Any, int] = {}
 
@@ -384,7 +384,7 @@ class Learner:
         checkpoint) after :data:`LOSSES_IN_A_ROW` losses with no rollout between them."""
         self.requested -= self.run.cfg.n_envs * self.run.env.config.max_steps  # never comes
         self.ledger["lost"] += 1
-        if in_a_row > LOSSES_IN_A_ROW:
+        if in_a_row >= LOSSES_IN_A_ROW:
             self.save(pool)
             raise ScaleError(
                 f"{in_a_row} workers lost in a row (the last: {lost.reason}); "

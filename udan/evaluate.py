@@ -78,7 +78,7 @@ def run_cell(
     )
 
 
-#: Plays ``fn(*args)`` for each args tuple, results in order (:func:`udan.scale.ray_map`).
+#: Plays ``fn(*args)`` for each args tuple, results in order (:func:`udan.cluster.ray_map`).
 CellRunner = Callable[[Callable, list[tuple]], list]
 
 
