@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow hil bench lint wheel-check clean
+.PHONY: install demo test test-slow hil bench paper lint wheel-check clean
 
 install: $(STAMP)
 
@@ -45,6 +45,11 @@ bench: $(STAMP)
 	@mkdir -p out/bench
 	@for b in bench/*.py; do name=$$(basename $$b .py); echo "== $$b"; \
 	  $(PY) -P $$b > out/bench/$$name.json || exit 1; cat out/bench/$$name.json; done
+
+# The paper's tables and figures, regenerated from the committed models beside the paper's
+# numbers: docs/results.md and docs/results/ (udan-paper; minutes on one core, see its output).
+paper: $(STAMP)
+	$(VENV)/bin/udan-paper --out docs/results.md
 
 # The wheel as users get it: udan.* alone, installed without torch into a fresh venv, the
 # commands run from an empty folder (.ci/wheel-check says each step).

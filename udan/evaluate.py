@@ -38,6 +38,9 @@ class CellResult:
     """Mean over episodes of the average agent's episode return."""
     target_score: float
     """surround only: the target's episode score (0 for find_water)."""
+    goal_per_agent: float = 0.0
+    """surround only: minus the steps an agent ends next to the target, averaged over agents
+    and episodes (the paper's Table V "goal score", its "average loss score of each agent")."""
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False, repr=False)
     """Each episode's average agent score, in episode order (for paired comparisons)."""
 
@@ -68,12 +71,14 @@ def run_cell(
     while not done.all():
         _, _, done = env.step(policy.act(env))
     per_agent = env.episode_return.sum(axis=1) / agents
+    goal = env.adjacent_steps.sum(axis=1) / -agents if env_name == "arena/surround" else 0.0
     return CellResult(
         agents,
         obstacles,
         episodes,
         float(per_agent.mean()),
         float(env.target_score.mean()),
+        float(np.mean(goal)),
         per_agent,
     )
 
@@ -142,10 +147,19 @@ def format_agents_table(results: list[CellResult], title: str) -> str:
 def write_csv(results: list[CellResult], path: Path) -> None:
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["agents", "obstacles", "episodes", "agent_score", "target_score"])
+        writer.writerow(
+            ["agents", "obstacles", "episodes", "agent_score", "target_score", "goal_per_agent"]
+        )
         for r in results:
             writer.writerow(
-                [r.agents, r.obstacles, r.episodes, f"{r.agent_score:.4f}", f"{r.target_score:.4f}"]
+                [
+                    r.agents,
+                    r.obstacles,
+                    r.episodes,
+                    f"{r.agent_score:.4f}",
+                    f"{r.target_score:.4f}",
+                    f"{r.goal_per_agent:.4f}",
+                ]
             )
 
 
@@ -524,6 +538,9 @@ def main(argv: list[str] | None = None) -> int:
         if env_name == "arena/surround":
             print()
             print(format_table(results, "target_score", f"{env_name}, {label}: target score"))
+            print()
+            title = f"{env_name}, {label}: goal score per agent (the paper's Table V, lower half)"
+            print(format_table(results, "goal_per_agent", title))
         print()
         if env_name == "arena/hidden_goal":
             config = make_vec(env_name, batch=1, agents=agents[1], obstacles=0).config
