@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[train,dev,web]'
+	$(PY) -m pip install --quiet -e '.[train,scale,dev,web]'
 	touch $(STAMP)
 
 # A real headless browser for the live page's tests: Debian's chromium (Playwright drives it; its
