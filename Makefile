@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install c-toolchain demo test test-slow hil bench lint wheel-check clean
+.PHONY: install c-toolchain demo test test-slow hil bench paper lint wheel-check clean
 
 install: $(STAMP)
 
@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml setup.py udan/_kernels.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[train,dev,web]'
+	$(PY) -m pip install --quiet -e '.[train,scale,dev,web]'
 	touch $(STAMP)
 
 HAS_HEADERS = $(PYTHON) -c 'import os, sys, sysconfig; \
@@ -57,6 +57,11 @@ bench: $(STAMP)
 	@mkdir -p out/bench
 	@for b in bench/*.py; do name=$$(basename $$b .py); echo "== $$b"; \
 	  $(PY) -P $$b > out/bench/$$name.json || exit 1; cat out/bench/$$name.json; done
+
+# The paper's tables and figures, regenerated from the committed models beside the paper's
+# numbers: docs/results.md and docs/results/ (udan-paper; minutes on one core, see its output).
+paper: $(STAMP)
+	$(VENV)/bin/udan-paper --out docs/results.md
 
 # The wheel as users get it: udan.* alone, installed without torch into a fresh venv, the
 # commands run from an empty folder (.ci/wheel-check says each step).

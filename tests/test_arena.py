@@ -71,6 +71,7 @@ def test_surround_scores_adjacency_and_penalises_every_fourth_step():
     assert [a for a, _ in rewards] == [1.0] * 8
     assert [b for _, b in rewards] == [0, 0, 0, -1, 0, 0, 0, -1]
     assert env.target_score[0] == -8
+    assert env.adjacent_steps[0].tolist() == [8, 0]  # the paper's goal score: -4 per agent
 
 
 def _previous_task_rewards(task, layout, pos, present, target, t):

@@ -10,7 +10,9 @@ Two tasks on a 9x9 grid, five actions (:mod:`udan.envs.rules`), 50 steps, view r
   time as the agents, under the same conflict rules, fleeing what it sees within
   ``target_view`` (1), so an agent that follows it into the cell it leaves stays next to it.
   An agent next to it (4-neighbour) scores 1 per step; one that is not loses 1 every fourth
-  step. The target's own score drops by 1 for every step some agent is next to it.
+  step. The target's own score drops by 1 for every step some agent is next to it;
+  ``adjacent_steps`` counts, per agent, the steps it ended next to it (the paper's Table V
+  "goal score" is minus their mean over agents: docs/environments.md).
 
 The number of agents and obstacles is drawn per episode; with ``churn`` > 0 an agent may also
 join or leave during an episode (within ``agents``, so churn needs a range). The world is
@@ -247,6 +249,7 @@ class ArenaBatch:
         self.episode_return = np.zeros((b, n), dtype=np.float32)
         self.target = np.zeros((b, 2), dtype=np.int64)
         self.target_score = np.zeros(b, dtype=np.float32)
+        self.adjacent_steps = np.zeros((b, n), dtype=np.int64)
         self.t = np.zeros(b, dtype=np.int64)
         self.joined = np.zeros((b, n), dtype=bool)
         self.left = np.zeros((b, n), dtype=bool)
@@ -300,6 +303,7 @@ class ArenaBatch:
         self.last_reward[idx] = 0.0
         self.episode_return[idx] = 0.0
         self.target_score[idx] = 0.0
+        self.adjacent_steps[idx] = 0
         self.t[idx] = 0
         self.joined[idx] = agent_valid
         self.left[idx] = False
@@ -344,8 +348,9 @@ class ArenaBatch:
             self.config.task, self.layout, self.pos, self.present, self.target, self.t
         )
         if self.config.task == "surround":
-            adjacent = np.abs(self.pos - self.target[:, None]).sum(-1) == 1
-            self.target_score -= (adjacent & self.present).any(axis=1)
+            adjacent = (np.abs(self.pos - self.target[:, None]).sum(-1) == 1) & self.present
+            self.target_score -= adjacent.any(axis=1)
+            self.adjacent_steps += adjacent
         return reward
 
     def flee_scores(self) -> np.ndarray:
@@ -410,6 +415,7 @@ class ArenaBatch:
                 self.last_action[b, slot] = -1
                 self.last_reward[b, slot] = 0.0
                 self.episode_return[b, slot] = 0.0
+                self.adjacent_steps[b, slot] = 0
                 self.joined[b, slot] = True
             elif not join and count > max(cfg.agents[0], 1):
                 slot = rng.choice(np.flatnonzero(self.present[b]))
