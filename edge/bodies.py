@@ -179,10 +179,10 @@ def closing_in(
         if plan is None:
             advance = steps * (shown / dt if dt > 0 else 0.0)
         else:
-            covered = plan.covered(t_ns + steps * 1e9)
-            planned = covered[0] - float(plan.covered(t_ns - dt * 1e9))
+            then, *covered = plan.covered(t_ns + np.append(-dt, steps) * 1e9)
+            planned = covered[0] - then
             pace = min(shown / planned, MAX_PACE) if planned >= PACE_FROM_M else 1.0
-            advance = pace * (covered - covered[0])
+            advance = pace * (np.asarray(covered) - covered[0])
         tx, ty = targets.get(car, (x, y))
         left = math.hypot(tx - x, ty - y)
         travel = np.minimum(advance, left)
