@@ -130,6 +130,11 @@ def _parser() -> argparse.ArgumentParser:
         help="the cars' time per cell (with --sim: the mock cars'): the guard predicts their "
         "moves with it (docs/motion.md)",
     )  # fmt: skip
+    run.add_argument(
+        "--accel-share", type=float, default=0.25,
+        help="the cars' speed profile: share of a move's time spent accelerating, as long "
+        "braking (0: constant speed, as the --sim cars)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -260,6 +265,7 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         geometry=geometry,
         body_m=args.body_mm / 1000,
         cell_time_s=args.cell_time_ms / 1000,
+        accel_share=0.0 if args.sim else args.accel_share,
     )
     core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion)
     shell = EdgeShell(perception, link, core, telemetry, config, live)
@@ -391,6 +397,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         if not args.cell_time_ms > 0:
             raise UsageError(f"--cell-time-ms {args.cell_time_ms:g}: a move takes some time")
+        if not 0 <= args.accel_share < 0.5:
+            raise UsageError(f"--accel-share {args.accel_share:g}: a share of a move, 0 to 0.5")
         if args.web is not None:
             web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:
