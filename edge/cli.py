@@ -143,6 +143,16 @@ def _parser() -> argparse.ArgumentParser:
         "--body-mm", type=float, default=220.0,
         help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
     )  # fmt: skip
+    run.add_argument(
+        "--cell-time-ms", type=float, default=200.0,
+        help="the cars' time per cell (with --sim: the mock cars'): the guard predicts their "
+        "moves with it (docs/motion.md)",
+    )  # fmt: skip
+    run.add_argument(
+        "--accel-share", type=float, default=0.25,
+        help="the cars' speed profile: share of a move's time spent accelerating, as long "
+        "braking (0: constant speed, as the --sim cars)",
+    )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
     run.add_argument("--episode-steps", type=int, default=50, help="decisions per episode")
@@ -198,7 +208,6 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
-    sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
 
 
@@ -352,6 +361,8 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         math.radians(args.settle_deg),
         geometry=geometry,
         body_m=args.body_mm / 1000,
+        cell_time_s=args.cell_time_ms / 1000,
+        accel_share=0.0 if args.sim else args.accel_share,
     )
     recorder = None
     if args.record is not None:
@@ -568,6 +579,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
                 f"cell ({2000 * _half_cell_m():.0f} mm)"
             )
+        if not args.cell_time_ms > 0:
+            raise UsageError(f"--cell-time-ms {args.cell_time_ms:g}: a move takes some time")
+        if not 0 <= args.accel_share < 0.5:
+            raise UsageError(f"--accel-share {args.accel_share:g}: a share of a move, 0 to 0.5")
         if args.web is not None:
             web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:

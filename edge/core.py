@@ -46,13 +46,14 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from udan.edge.bodies import closing_in, corner_delays, crossing
+from udan.edge.bodies import Plan, closing_in, corner_delays, crossing
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Cell, Change, Fleet, FleetState, Seen
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.protocol import Guidance
 from udan.edge.safety import STOP, filter_moves
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT
+from udan.profile import move_span
 
 if TYPE_CHECKING:  # data the core reads; it runs neither the link nor the vision
     from udan.edge.link import CommandReport, DispatchReport
@@ -111,6 +112,39 @@ class MotionRules:
     guard_horizon_s: float = 0.08
     """How far ahead the guard looks for bodies about to touch: two frames at 40 FPS (the
     frame's analysis and the stop's way to the car) and some."""
+    cell_time_s: float = 0.2
+    """The cars' time per cell (their controllers' setting; the HIL's mock cars' is
+    ``--cell-time-ms``): the guard predicts a commanded move with it, and start delays count
+    in it."""
+    accel_share: float = 0.25
+    """The cars' speed profile: the share of a move's time spent accelerating, as long braking
+    (protocol section 8; the mock cars' at every motion level but ``0``)."""
+    follow_gap_s: float = 0.04
+    """How long after its leader a car that follows it straight (entering the cell it leaves,
+    the same way) starts: a slipping leader and a follower setting off together leave the
+    guard too little time to see the slip and stop the follower at short cell times
+    (docs/motion.md gives the figures)."""
+
+    @property
+    def follow_delay(self) -> float:
+        """The follow gap in cell times (:func:`udan.edge.bodies.corner_delays`)."""
+        return self.follow_gap_s / self.cell_time_s
+
+    def plan(self, guidance: Guidance, taken_ns: int) -> Plan | None:
+        """The move a car that took a command with ``guidance`` at ``taken_ns`` drives, as
+        its controller plans it (protocol section 8), if the guidance has its measured pose."""
+        if guidance.pose is None:
+            return None
+        (x, y, heading), (tx, ty, th) = guidance.pose, guidance.target
+        length = math.hypot(tx - x, ty - y)
+        turns = abs(math.remainder(th - heading, math.tau)) / (math.pi / 2)
+        span = move_span(length / self.geometry.cell_m, turns)
+        return Plan(
+            length,
+            taken_ns + round(guidance.delay * self.cell_time_s * 1e9),
+            round(span * self.cell_time_s * 1e9),
+            self.accel_share,
+        )
 
     @property
     def reach(self) -> float:
@@ -213,6 +247,7 @@ class ControlCore:
         self._rounds = 0  # re-centring rounds since the last step
         self._before: dict[int, Seen] = {}  # each car's sighting before the last one
         self._targets: dict[int, tuple[float, float]] = {}  # where the last commands drive to
+        self._plans: dict[int, Plan] = {}  # the moves of the last commands the cars took
         self.static: dict[str, frozenset[Cell]] | None = None  # the last scene's cell markers
         self.uncertain: set[int] = set()  # cars the last scene could not place in a cell
         self.not_before_ns = 0  # frames captured earlier are stale: not analysed
@@ -426,10 +461,12 @@ class ControlCore:
             c: (x, y, (t - at) / 1e9) for c, (x, y, _, at) in self._before.items() if c in moving
         }
         targets = {c: self._targets[c] for c in moving if c in self._targets and c in now}
+        plans = {c: self._plans[c] for c in targets if c in self._plans}
         motion = self.motion
-        stops = closing_in(now, before, targets, motion.guard_horizon_s, motion.reach)
+        stops = closing_in(now, before, targets, motion.guard_horizon_s, motion.reach, plans, t)
         for car in stops:
             del self._targets[car]
+            self._plans.pop(car, None)
         commands = dict.fromkeys(sorted(stops), STOP)
         fleet.command.update(commands)
         return commands
@@ -441,6 +478,7 @@ class ControlCore:
         if self._log is not None:
             self._log("recentred", recentring, report)
         self.fleet.command.update(recentring.commands)
+        self._took(recentring.guidance, report)
         sent = [report.cars[c] for c in recentring.cars if c in recentring.guidance]
         if sent and not any(r.acked for r in sent):
             self._rounds -= 1
@@ -461,6 +499,17 @@ class ControlCore:
             "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
         }
 
+    def _took(self, guidance: Mapping[int, Guidance], report: DispatchReport) -> None:
+        """The moves the guard predicts: each car that took its command drives its plan from
+        when it took it (its receive time, else when its ACK came)."""
+        self._plans = {}
+        for car, g in guidance.items():
+            r = report.cars.get(car)
+            taken = None if r is None or not r.acked else r.car_received_ns or r.acked_ns
+            plan = None if taken is None else self.motion.plan(g, taken)
+            if plan is not None:
+                self._plans[car] = plan
+
     # ------------------------------------------------------------------ steps
     def commands_for(self, state: FleetState, now: int) -> tuple[Decision, dict[int, int], int]:
         """The step's decision (with each command's guidance: the car's measured pose and its
@@ -474,7 +523,7 @@ class ControlCore:
             for car in decision.cars
             if car not in state.moving
         }
-        delays, waits = corner_delays(moves)
+        delays, waits = corner_delays(moves, straight=self.motion.follow_delay)
         leaving = {start: car for car, (start, end) in moves.items() if start != end}
         after = {
             car: leaving[end]
@@ -514,6 +563,8 @@ class ControlCore:
         decided_ns = report.decision_ns
         rehearsed, self._rehearsed = self._rehearsed, False
         self.fleet.command.update(commands)
+        # a car still in its move was sent its destination again: its move is not that plan
+        self._took({c: g for c, g in decision.guidance.items() if c not in state.moving}, report)
         cars = report.cars.values()
         received = [r.car_received_ns for r in cars if r.acked]
         late = _late_executions(report)
@@ -596,6 +647,7 @@ class ControlCore:
         self._rehearsed = False
         self._rounds = 0
         self._targets = {}
+        self._plans = {}
         self.fleet.reset()
         self.not_before_ns = now
 

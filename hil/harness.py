@@ -281,6 +281,8 @@ class Loop:
             "--report", str(self.folder / "edge.json"),
             "--telemetry", str(self.folder / "telemetry.jsonl"), "--quiet",
             "--settle-mm", str(a.settle_mm), "--settle-deg", str(a.settle_deg),
+            "--cell-time-ms", str(a.cell_time_ms),
+            "--accel-share", str(motion_level(a.motion_error).accel_share),
         ]  # fmt: skip
         if a.duration is not None:
             cmd += ["--duration", str(a.duration)]

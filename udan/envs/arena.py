@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from udan import _kernels
 from udan.envs.errors import EnvConfigError, parse_range
 from udan.envs.observe import (
     AGENT_BIT,
@@ -167,6 +168,9 @@ def layout_bits(layout: np.ndarray, view: int) -> np.ndarray:
     return pad_layout(_LAYOUT_BITS[layout], view)
 
 
+_NO_TARGET = np.zeros((0, 2), np.int64)  # find_water has none
+
+
 def scene_codes(
     padded_layout: np.ndarray,
     pos: np.ndarray,
@@ -175,16 +179,21 @@ def scene_codes(
     target: np.ndarray | None = None,
 ) -> np.ndarray:
     """What :func:`udan.envs.observe.observe` reads: the padded layout bits (B, H+2v, W+2v)
-    with every present agent's cell and the surround ``target`` (B, 2) cell marked. The arena
-    core and the edge (which builds the scene from camera markers) both call this."""
-    codes = padded_layout.copy()
-    batch, hp, wp = codes.shape
-    flat = codes.reshape(-1)
-    origin = view * wp + view  # where cell (0, 0) of arena 0 is in the flat padded codes
-    arenas = np.arange(batch)[:, None] * (hp * wp) + origin if batch > 1 else origin
-    flat[(pos[..., 0] * wp + pos[..., 1] + arenas)[present]] |= AGENT_BIT
-    if target is not None:
-        flat[target[:, 0] * wp + target[:, 1] + np.ravel(arenas)] |= OBJECTIVE_BIT
+    with every present agent's cell and the surround ``target`` (B, 2) cell marked (present
+    agents stand on the arena). The arena core and the edge (which builds the scene from
+    camera markers) both call this; one copy and one loop in C (``udan._kernels``)."""
+    present = np.ascontiguousarray(present, bool)
+    codes = np.empty(np.shape(padded_layout), np.uint8)
+    _kernels.scene_codes(
+        np.ascontiguousarray(padded_layout, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        present,
+        _NO_TARGET if target is None else np.ascontiguousarray(target, np.int64),
+        view,
+        AGENT_BIT,
+        OBJECTIVE_BIT,
+        codes,
+    )
     return codes
 
 
@@ -196,20 +205,26 @@ def task_rewards(
     target: np.ndarray | None,
     t: np.ndarray,
 ) -> np.ndarray:
-    """Per-agent rewards (B, N) of one step that has just ended (``t`` counts it).
+    """Per-agent rewards (B, N) of one step that has just ended (``t`` (B,) counts it).
 
     find_water: 1 on a cell in front of a source. surround: 1 next to the target, else -1 every
-    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world.
+    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world; one
+    loop in C (``udan._kernels.task_rewards``).
     """
-    if task == "find_water":
-        front = pos[..., 0] == 1
-        source = layout[np.arange(len(layout))[:, None], 0, pos[..., 1]] == WATER
-        reward = (front & source).astype(np.float32)
-    else:
-        adjacent = np.abs(pos - target[:, None]).sum(-1) == 1
-        penalty = (np.asarray(t) % 4 == 0)[:, None] & ~adjacent
-        reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
-    return np.where(present, reward, 0.0).astype(np.float32)
+    present = np.ascontiguousarray(present, bool)
+    out = np.empty(present.shape, np.float32)
+    find_water = task == "find_water"
+    _kernels.task_rewards(
+        find_water,
+        np.ascontiguousarray(layout, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        present,
+        _NO_TARGET if find_water else np.ascontiguousarray(target, np.int64),
+        np.ascontiguousarray(t, np.int64),
+        WATER,
+        out,
+    )
+    return out
 
 
 class ArenaBatch:
