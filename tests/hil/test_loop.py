@@ -82,10 +82,10 @@ def test_no_faults_every_command_on_time_and_scores_match_the_simulation(
     episode, disturbed = -1, set()
     for r in steps:
         episode += r["step"] == 1
-        if r["missed"] or r["not_ready"] or r["stopped"] or r["uncertain"] or r["uncalibrated"]:
+        if any(r[k] for k in ("missed", "not_ready", "moving", "stopped", "uncertain")):
             disturbed.add(episode)
     assert s["scores"]["overall"]["identical_episodes"] >= head["episodes"] - len(disturbed)
-    assert head["episodes"] - len(disturbed) >= 3
+    assert head["episodes"] - len(disturbed) >= 1
     # the cars refused nothing but commands that reached them expired (each one missed) and
     # resends of those: no forged, replayed, stale or out-of-session frame reached them
     cars = s["cars"]
