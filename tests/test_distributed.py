@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from concurrent import futures
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from test_train import TINY, one_line_exit_2, quiet, run_cli
 
 from udan.budget import planned_counts
 from udan.checkpoint import load_checkpoint, load_model
-from udan.cluster import PROBE_SECONDS, ScaleError, import_ray, ray_session
+from udan.cluster import PROBE_SECONDS, ScaleError, check_address, import_ray, ray_session
 from udan.distributed import POOLS, LocalPool, Rollout, RolloutWorker, WorkerLost
 from udan.evaluate import CheckpointPolicy, evaluate
 from udan.train import EpisodeReplay, TrainConfig, build, train
@@ -239,6 +240,25 @@ def test_an_address_that_does_not_answer_is_given_up_within_its_deadline():
             with pytest.raises(ScaleError), ray_session(2, address):
                 pass
             assert time.monotonic() - started < within, address
+
+
+def test_an_address_where_grpc_answers_but_not_ray_is_refused_within_its_deadline():
+    """A gRPC server that is not Ray (or any HTTP/2 server, such as a proxy that answers every
+    address with 404: this machine's network does) passes a connect and a channel check; Ray
+    would then retry it for 20 s and more, a log line a second. Ray's own first call is made
+    instead: the server does not know it, and the address is refused with what it answered."""
+    grpc = pytest.importorskip("grpc")
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=1))
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    try:
+        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+            started = time.monotonic()
+            with pytest.raises(ScaleError, match=r"not a Ray cluster .*UNIMPLEMENTED"):
+                check_address(address, PROBE_SECONDS)
+            assert time.monotonic() - started < PROBE_SECONDS, address
+    finally:
+        server.stop(0)
 
 
 def test_auto_probes_the_cluster_ray_would_join(tmp_path):
