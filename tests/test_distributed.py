@@ -366,3 +366,47 @@ def test_ctrl_c_on_the_command_line_writes_a_checkpoint(tmp_path):
     ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["progress"]["steps"] >= 400
     counted_once(ckpt)
+
+
+def _free_port() -> int:
+    """A port the system would hand out (the ephemeral range: clear of Ray's worker ports)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_udan_train_joins_a_running_cluster_by_its_address_and_by_ray_client(tmp_path):
+    """A cluster started apart (``ray start --head``, as on a lab's server) is joined by its GCS
+    address and through ``ray://`` (Ray's client server): the probe passes both, and each run
+    trains on the cluster's workers. ``--block`` keeps the head in one process whose SIGTERM
+    stops everything it started (``ray stop`` would stop every Ray on the machine)."""
+    gcs, client = _free_port(), _free_port()
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
+    head = subprocess.Popen(
+        [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+         "--port", str(gcs), "--ray-client-server-port", str(client), "--num-cpus", "2",
+         "--include-dashboard", "false"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                check_address(f"ray://127.0.0.1:{client}", PROBE_SECONDS)
+                break
+            except ScaleError:
+                time.sleep(1)
+        for name, address in (("gcs", f"127.0.0.1:{gcs}"), ("client", f"ray://127.0.0.1:{client}")):
+            out = tmp_path / name
+            args = ["--steps", "1600", "--workers", "2", "--address", address, "--out", str(out)]
+            proc = subprocess.run(
+                [str(Path(sys.executable).with_name("udan-train")), *args],
+                capture_output=True, text=True, env=env, timeout=180,
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stderr[-2000:]
+            ckpt = load_checkpoint(out / "checkpoint.pt")
+            assert ckpt["progress"]["steps"] == 1600 and ckpt["workers"]["started"] == 2
+    finally:
+        head.terminate()
+        head.wait(timeout=60)
