@@ -460,11 +460,10 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
             else:
                 halt.set()
 
-    def render(t_ns: int) -> np.ndarray:
+    def render(t_ns: int, out: np.ndarray) -> None:
         cars, cells = world.snapshot(t_ns)
-        image = renderer.render(cars, cells)
+        renderer.render(cars, cells, out=out)
         render_ns.append(time.monotonic_ns() - t_ns)
-        return image
 
     threading.Thread(target=listen, name="world mirror", daemon=True).start()
     try:

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import os
+import pickle
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -27,6 +30,7 @@ from udan.edge.perception import (
     ProcessPerception,
     ThreadPerception,
     VisionSettings,
+    _Server,
 )
 from udan.edge.vision import Scene
 from udan.hil.render import Renderer
@@ -145,6 +149,53 @@ async def test_frames_captured_before_the_cut_off_are_not_analysed(
         cut_off + k for k in range(1, 12, 2)
     ]
     assert all(e.t_capture_ns >= cut_off for e in events)
+
+
+def test_a_frame_the_camera_reuses_during_its_analysis_gives_no_scene(
+    arena_image: np.ndarray,
+) -> None:
+    """The perception process is lent the camera's shared slot, not a copy: a frame whose slot
+    the camera rewrote before the analysis ended is dropped and counted, never sent as a scene
+    (its image may have been half one frame, half another)."""
+    with VirtualCamera(unique_name(), slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        grabber = FrameGrabber(source)
+        vision = VisionSettings(GEOMETRY, tuple(CARS)).build()
+        analyse = vision.process
+
+        def analyse_while_the_camera_laps(frame):
+            scene = analyse(frame)
+            if frame.index == 2:  # meanwhile the camera wrote three frames: 5 took 2's slot
+                for _ in range(3):
+                    cam.publish(arena_image)
+            return scene
+
+        vision.process = analyse_while_the_camera_laps
+        edge, there = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        server = _Server(there, grabber, vision)
+        serving = threading.Thread(target=server.serve)
+        serving.start()
+        messages = []
+        try:
+            for _ in range(2):
+                cam.publish(arena_image)
+                while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                    messages.append(message)
+                messages.append(message)
+        finally:
+            edge.send(pickle.dumps(("stop",)))
+            serving.join(5.0)
+            grabber.close()
+            edge.close()
+            there.close()
+    scenes = [m[1].frame_index for m in messages if m[0] == "scene"]
+    taken = [m[1] for m in messages if m[0] == "taken"]
+    assert taken[:2] == [1, 2] and scenes[0] == 1 and 2 not in scenes
+    assert scenes[1] in (3, 4, 5)
+    assert server.overwritten == 1
+    *_, captured, dropped = messages[-1]
+    assert len(scenes) + dropped <= captured <= 5
 
 
 @pytest.mark.parametrize(
