@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import multiprocessing
 import os
 import sys
@@ -35,7 +34,7 @@ from udan.edge.perception import (
     ThreadPerception,
     VisionSettings,
 )
-from udan.hil.render import Renderer
+from udan.hil.render import Renderer, circling_cars
 from udan.hil.vcam import VirtualCamera
 
 TARGET_P99_MS = 5.0  # the vision's budget: the scene should reach the loop within it
@@ -48,25 +47,9 @@ CARS = 5
 CYCLE = 80  # frames drawn once, then replayed (2 s of motion, closing on itself)
 
 
-def _frames(geometry: ArenaGeometry) -> list[np.ndarray]:
-    """Five cars, each going round its own circle once per cycle, one cell across."""
-    renderer = Renderer(geometry)
-    cells = {"obstacle": [(4, 4)], "wall": [(0, 1)], "water": [(0, 4)], "target": []}
-    frames = []
-    for f in range(CYCLE):
-        angle = 2 * math.pi * f / CYCLE
-        cars = []
-        for k in range(CARS):
-            cx, cy = geometry.cell_centre(2 + k, 1 + (3 * k) % 7)
-            r = geometry.cell_m / 2
-            cars.append((5 + k, cx + r * math.cos(angle), cy + r * math.sin(angle), angle + k))
-        frames.append(renderer.render(cars, cells))
-    return frames
-
-
 def _publish(name: str, ready, stop) -> None:
     """The writer process: draw the cycle, then publish it at 40 FPS until told to stop."""
-    frames = _frames(ArenaGeometry())
+    frames = circling_cars(Renderer(ArenaGeometry()), CYCLE, CARS)
     with VirtualCamera(name, fps=40.0) as cam:
         ready.set()
         cam.run(lambda _t, out: np.copyto(out, frames[cam.frames % CYCLE]), stop=stop)

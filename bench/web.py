@@ -23,12 +23,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
 import aiohttp
 import numpy as np
 
 from udan.edge.live import PERIOD_NS
+from udan.hil.ab import Block, p99_ms, p99_ratio, read_block, sim_command
 
 BLOCKS = int(os.environ.get("BENCH_BLOCKS", "5"))
 BLOCK_S = float(os.environ.get("BENCH_BLOCK_S", "60"))
@@ -37,8 +37,6 @@ CLIENTS = 10
 WARM_UP_S = 10.0
 TARGET_RATIO = 1.05
 TARGET_UPDATE_HZ = 0.9 * 1e9 / PERIOD_NS  # 9 Hz: nine in ten of the updates the edge offers
-BOOTSTRAP = 2000
-UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
 URL_LINE = re.compile(rb"^udan-edge: live view at (http://\S+/)")
 STATE = '{"kind": "state"'  # how the page's state messages begin
 
@@ -65,13 +63,9 @@ async def _client(url: str, until: float) -> dict[str, float]:
     return {"states": states, "hz": round((states - 1) / span, 2) if span > 0 else 0.0}
 
 
-async def _block(web: bool, folder: Path) -> dict[str, Any]:
-    """One run of the edge; its decision latencies after the warm-up, misses, client rates."""
-    telemetry, report = folder / "telemetry.jsonl", folder / "report.json"
-    cmd = [UDAN_EDGE, "--sim", "--cars", "5", "--duration", str(BLOCK_S), "--quiet",
-           "--telemetry", str(telemetry), "--report", str(report)]  # fmt: skip
-    cmd += ["--web", "127.0.0.1:0"] if web else []
-    cmd += ["--realtime"] if REALTIME else []
+async def _block(web: bool, folder: Path) -> tuple[Block, list[float]]:
+    """One run of the edge (:mod:`udan.hil.ab`'s block), and its clients' update rates."""
+    cmd = sim_command(["--web", "127.0.0.1:0"] if web else [], folder, BLOCK_S, REALTIME)
     proc = await asyncio.create_subprocess_exec(
         *cmd, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
     )
@@ -89,55 +83,30 @@ async def _block(web: bool, folder: Path) -> dict[str, Any]:
     _, err = await proc.communicate()
     if proc.returncode != 0:
         raise SystemExit(f"bench/web.py: udan-edge exited {proc.returncode}: {err[-500:]!r}")
-    steps = [json.loads(line) for line in telemetry.read_text().splitlines()]
-    warm_ns = started_ns + int(WARM_UP_S * 1e9)
-    decisions = [
-        r["state_to_commands_ns"] for r in steps if r["kind"] == "step" and r["t_ns"] >= warm_ns
-    ]
-    counts = json.loads(report.read_text())["counts"]
-    return {
-        "decisions_ns": decisions,
-        "missed": counts.get("missed", 0),
-        "on_time": counts.get("on_time", 0),
-        "clients_hz": [c["hz"] for c in clients],
-    }
+    return read_block(folder, started_ns, WARM_UP_S), [c["hz"] for c in clients]
 
 
-def _p99_ms(samples: list[int]) -> float:
-    return float(np.percentile(samples, 99)) / 1e6
-
-
-async def _measure(folder: Path) -> tuple[list[dict], list[dict]]:
-    plain, web = [], []
+async def _measure(folder: Path) -> tuple[list[Block], list[Block], list[float]]:
+    plain, web, rates = [], [], []
     for i in range(BLOCKS):
         for arm, runs in (("plain", plain), ("web", web)):
             block = folder / f"{arm}{i}"
             block.mkdir()
-            runs.append(await _block(arm == "web", block))
+            run, hz = await _block(arm == "web", block)
+            runs.append(run)
+            rates += hz
             print(f"bench/web.py: {arm} block {i + 1}/{BLOCKS} done", file=sys.stderr)
-    return plain, web
+    return plain, web, rates
 
 
 def main() -> int:
     with tempfile.TemporaryDirectory(prefix="udan-bench-web-") as tmp:
-        plain, web = asyncio.run(_measure(Path(tmp)))
-    pool = {
-        arm: np.concatenate([r["decisions_ns"] for r in runs])
-        for arm, runs in (("plain", plain), ("web", web))
-    }
-    ratio = _p99_ms(pool["web"]) / _p99_ms(pool["plain"])
-    rng = np.random.default_rng(0)
-    ratios = []
-    for _ in range(BOOTSTRAP):
-        pick = rng.integers(0, BLOCKS, BLOCKS)
-        a = np.concatenate([plain[i]["decisions_ns"] for i in pick])
-        b = np.concatenate([web[i]["decisions_ns"] for i in pick])
-        ratios.append(_p99_ms(b) / _p99_ms(a))
-    low, high = np.percentile(ratios, [2.5, 97.5])
-    rates = [hz for r in web for hz in r["clients_hz"]]
-    missed = {arm: sum(r["missed"] for r in runs) for arm, runs in (("plain", plain), ("web", web))}
-    sent = {arm: missed[arm] + sum(r["on_time"] for r in runs)
-            for arm, runs in (("plain", plain), ("web", web))}  # fmt: skip
+        plain, web, rates = asyncio.run(_measure(Path(tmp)))
+    arms = {"plain": plain, "web": web}
+    pool = {arm: np.concatenate([r.decisions_ns for r in runs]) for arm, runs in arms.items()}
+    ratio, low, high = p99_ratio(plain, web)
+    missed = {arm: sum(r.missed for r in runs) for arm, runs in arms.items()}
+    sent = {arm: missed[arm] + sum(r.on_time for r in runs) for arm, runs in arms.items()}
     result = {
         "benchmark": "web",
         "blocks": BLOCKS,
@@ -148,13 +117,12 @@ def main() -> int:
         "load_average_1m": round(os.getloadavg()[0], 2),
         "decisions": {arm: int(v.size) for arm, v in pool.items()},
         "decision_p50_ms": {arm: round(float(np.median(v)) / 1e6, 4) for arm, v in pool.items()},
-        "decision_p99_ms": {arm: round(_p99_ms(v), 4) for arm, v in pool.items()},
+        "decision_p99_ms": {arm: round(p99_ms(v), 4) for arm, v in pool.items()},
         "decision_p99_ms_per_block": {
-            arm: [round(_p99_ms(r["decisions_ns"]), 4) for r in runs]
-            for arm, runs in (("plain", plain), ("web", web))
+            arm: [round(p99_ms(r.decisions_ns), 4) for r in runs] for arm, runs in arms.items()
         },
         "p99_ratio_web_to_plain": round(ratio, 4),
-        "p99_ratio_ci95": [round(float(low), 4), round(float(high), 4)],
+        "p99_ratio_ci95": [round(low, 4), round(high, 4)],
         "deadline_missed": missed,
         "commands": sent,
         "client_update_hz": {"min": min(rates, default=0.0), "median": float(np.median(rates))},

@@ -2,8 +2,12 @@
 
 - ``udan-calibrate board --out board.pdf``: a printable ChArUco board, at its true size (a line
   under it says the square size, to check the print with a ruler).
+- ``udan-calibrate probe --camera URL``: the mode a camera URL gets (``?width=...&fps=...``, the
+  one place a mode is set, as for ``udan-edge --camera``) and the modes and controls the camera
+  offers.
 - ``udan-calibrate camera --images DIR | --camera URL --out cam.yaml``: OpenCV's ChArUco
-  calibration from views of that board (a folder of images, or a camera at its current mode),
+  calibration from views of that board (a folder of images, or a camera in the mode its URL
+  asks for, which it says on stderr: a calibration holds for that mode only),
   with the frame coverage as views come in and the RMS reprojection error at the end; writes the
   OpenCV FileStorage YAML that ``udan-edge --calibration`` reads.
 - ``udan-calibrate check --camera URL [--calibration cam.yaml]``: the arena as the edge's vision
@@ -29,7 +33,7 @@ import cv2
 import numpy as np
 
 from udan.edge.calibration import CameraCalibration, VisionError, save_calibration
-from udan.edge.camera import CameraError, Frame, open_camera
+from udan.edge.camera import CameraError, CameraSource, Frame, open_camera
 from udan.edge.geometry import CORNER_IDS, ArenaGeometry
 from udan.edge.vision import Vision
 
@@ -196,6 +200,7 @@ def collect_views(source: str, spec: BoardSpec, wanted: int, live: bool) -> View
     last: np.ndarray | None = None
     try:
         with open_camera(source) as camera:
+            _say_mode(camera)
             for frame in camera:
                 seen += 1
                 image = _gray(frame)
@@ -239,6 +244,40 @@ def collect_views(source: str, spec: BoardSpec, wanted: int, live: bool) -> View
     return views
 
 
+def _say_mode(camera: CameraSource) -> None:
+    """The mode a camera runs in (a calibration holds for that mode only) and how it differs
+    from the one its URL asked for, on stderr."""
+    if camera.mode is not None:
+        print(f"camera {camera.url}: {camera.mode.summary()}", file=sys.stderr)
+    for warning in camera.warnings:
+        print(f"camera {camera.url}: warning: {warning}", file=sys.stderr)
+
+
+def probe_camera(url: str) -> list[str]:
+    """``udan-calibrate probe``: the mode a camera URL gets, and the modes and controls the
+    camera offers."""
+    try:
+        with open_camera(url) as camera:
+            lines = [f"camera {camera.url}"]
+            if camera.mode is not None:
+                lines.append(f"  mode: {camera.mode.summary()}")
+            if camera.options.given:
+                asked = "&".join(
+                    f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+                    for k, v in camera.options.given.items()
+                )
+                lines.append(f"  asked: {asked}")
+            lines += [f"  warning: {w}" for w in camera.warnings]
+            for name, value in camera.describe().items():
+                if isinstance(value, str) and "\n" in value:
+                    lines += [f"  {name}:", *(f"    {line}" for line in value.splitlines())]
+                else:
+                    lines.append(f"  {name}: {value}")
+    except CameraError as err:
+        raise CalibrateError(str(err)) from None
+    return lines
+
+
 def _gray(frame: Frame) -> np.ndarray:
     image = frame.image
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
@@ -267,6 +306,7 @@ def check_arena(
     last = None
     try:
         with open_camera(source) as camera:
+            _say_mode(camera)
             for i, frame in enumerate(camera):
                 last = frame
                 vision.process(Frame(_gray(frame), frame.t_capture_ns, i))
@@ -386,6 +426,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     board_options(camera)
 
+    probe = commands.add_parser("probe", help="a camera's modes and controls, and its mode")
+    probe.add_argument(
+        "--camera", required=True, help="as udan-edge --camera, with the mode's ?options"
+    )
+
     check = commands.add_parser("check", help="the arena as the vision sees it")
     check.add_argument("--camera", required=True, help="camera, video file or image folder")
     check.add_argument("--calibration", help="the camera's calibration YAML")
@@ -423,6 +468,8 @@ def run(args: argparse.Namespace) -> list[str]:
                 "views nearer its edges and corners make the lens model hold there too"
             )
         return lines
+    if args.command == "probe":
+        return probe_camera(args.camera)
     if args.frames < 1:
         raise CalibrateError(f"--frames {args.frames}: at least 1")
     return check_arena(args.camera, args.calibration, args.frames, args.out)

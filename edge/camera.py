@@ -2,9 +2,19 @@
 
 As in python-can, a source implements one narrow hook (`_read`, blocking, an image or None at the
 end of the stream) and is registered by scheme as "module:Class", imported only when opened, so a
-source needing an extra library costs nothing until someone asks for it. Everything downstream
-sees grayscale `Frame`s stamped with `time.monotonic_ns()`, the clock the runtime measures its
-spans with.
+source needing an extra library (GenICam cameras through Aravis: `aravis://`) costs nothing until
+someone asks for it. Everything downstream sees grayscale `Frame`s stamped on
+`time.monotonic_ns()`, the clock the runtime measures its spans with: stamped when the camera
+exposed them where the camera or its driver says so (the V4L2 buffer timestamp, a GenICam
+camera's timestamp mapped onto this clock), so a frame's age on arrival is part of every latency
+figure.
+
+A live camera's mode is set in one place, its URL: `/dev/video0?width=1920&height=1200&fps=40`
+(`CameraOptions`). The source sets what was asked, reads back what the driver granted
+(`CameraMode`), and warns of every difference (an error with `strict=1`); a setting the driver
+refuses outright is a `CameraError`. A source with a driver queue never serves a frame that
+waited in it for more than a frame period (`StaleGuard`: counted and skipped), and a live camera
+that goes away raises `CameraLost`: the grabber reopens it when it returns.
 
 `FrameGrabber` runs the blocking reads in a thread: a camera read may block for a frame period,
 and the event loop must keep dispatching commands meanwhile. Only the newest frame matters to a
@@ -31,13 +41,18 @@ import mmap
 import os
 import platform
 import re
+import shutil
 import struct
+import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from multiprocessing import shared_memory
 from pathlib import Path
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -58,6 +73,8 @@ class Frame:
     t_capture_ns: int
     index: int
     """Frame number from the source: consecutive unless the source skipped frames."""
+    t_arrival_ns: int | None = None
+    """When the source handed it over (None: at capture); minus the capture, its age."""
     lease: Callable[[], bool] | None = None
     """For an image lent from the source's own buffer (`CameraSource.lend`): whether that
     buffer still holds this frame. None: the image is the frame's own."""
@@ -75,6 +92,184 @@ class Frame:
             return self
         copy = replace(self, image=self.image.copy(), lease=None)
         return copy if self.lease() else None
+
+
+CLOCKS = ("auto", "latch", "realtime", "arrival")
+"""Where a live camera's capture times come from (`CameraOptions.clock`)."""
+
+
+def _positive(kind: type) -> Callable[[str], float]:
+    def parse(text: str) -> float:
+        value = kind(text)
+        if not value > 0:
+            raise ValueError
+        return value
+
+    parse.__name__ = f"a positive {'integer' if kind is int else 'number'}"
+    return parse
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise ValueError
+    return value
+
+
+_non_negative.__name__ = "a number >= 0"
+
+
+def _pixel_format(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9_]{1,32}", text):
+        raise ValueError
+    return text
+
+
+_pixel_format.__name__ = "a pixel format name (MJPG, YUYV, Mono8, ...)"
+
+
+def _clock(text: str) -> str:
+    if text not in CLOCKS:
+        raise ValueError
+    return text
+
+
+_clock.__name__ = f"one of {', '.join(CLOCKS)}"
+
+
+def _flag(text: str) -> bool:
+    if text not in ("0", "1", "true", "false"):
+        raise ValueError
+    return text in ("1", "true")
+
+
+_flag.__name__ = "0 or 1"
+
+
+@dataclass(frozen=True)
+class CameraOptions:
+    """A live camera's mode as its URL asks for it (`/dev/video0?width=1920&height=1200&fps=40`):
+    the one place a mode is set; udan-edge, udan-calibrate and the probe all read it there.
+    Unset fields leave the driver's current setting alone."""
+
+    width: int | None = None
+    """Image width in pixels."""
+    height: int | None = None
+    """Image height in pixels."""
+    fps: float | None = None
+    """Frames per second."""
+    format: str | None = None
+    """Pixel format: a V4L2 FourCC (MJPG, YUYV, GREY) or a GenICam PixelFormat (Mono8, BayerRG8)."""
+    exposure_us: float | None = None
+    """Exposure time in microseconds; setting it turns automatic exposure off."""
+    gain: float | None = None
+    """Sensor gain in the driver's unit (V4L2: its raw value; GenICam: dB); turns automatic gain
+    off."""
+    clock: str = "auto"
+    """Where capture times come from: auto (the driver's or camera's own timestamp), latch (a
+    GenICam camera's timestamp latch), realtime (a camera stamping with this host's realtime
+    clock, as Aravis's fake camera does), arrival (when the frame arrived here)."""
+    strict: bool = False
+    """A granted mode that differs from the asked one is an error, not a warning."""
+
+    _PARSERS: ClassVar[dict[str, Callable[[str], Any]]] = {
+        "width": _positive(int),
+        "height": _positive(int),
+        "fps": _positive(float),
+        "format": _pixel_format,
+        "exposure_us": _positive(float),
+        "gain": _non_negative,
+        "clock": _clock,
+        "strict": _flag,
+    }
+
+    @classmethod
+    def parse(cls, query: str) -> CameraOptions:
+        """Options from a URL's query string (``width=1920&fps=40``); a one-line
+        `CameraError` for an unknown option or a bad value."""
+        values: dict[str, Any] = {}
+        for item in filter(None, query.split("&")):
+            name, sep, text = item.partition("=")
+            parser = cls._PARSERS.get(name)
+            if parser is None:
+                known = ", ".join(cls._PARSERS)
+                raise CameraError(f"unknown camera option {name!r} (known: {known})")
+            if not sep or name in values:
+                raise CameraError(f"camera option {name!r} must be given once, as {name}=VALUE")
+            try:
+                values[name] = parser(text)
+            except ValueError:
+                raise CameraError(f"camera option {name}={text}: not {parser.__name__}") from None
+        return cls(**values)
+
+    @property
+    def given(self) -> dict[str, Any]:
+        """The options set in the URL (not left at their default)."""
+        return {f.name: v for f in fields(self) if (v := getattr(self, f.name)) != f.default}
+
+
+@dataclass(frozen=True)
+class CameraMode:
+    """The mode a camera runs in, read back from its driver after the asked one was set."""
+
+    width: int
+    height: int
+    fps: float | None = None
+    format: str | None = None
+    exposure_us: float | None = None
+    gain: float | None = None
+    clock: str = "arrival"
+    """Where this source's capture times come from (what ``auto`` came to)."""
+
+    def summary(self) -> str:
+        """One line: ``1920x1200 at 40 fps, Mono8, exposure 2000 us, gain 0; capture times:
+        device``."""
+        parts = [f"{self.width}x{self.height}" + (f" at {self.fps:g} fps" if self.fps else "")]
+        parts += [self.format] if self.format else []
+        parts += [f"exposure {self.exposure_us:g} us"] if self.exposure_us is not None else []
+        parts += [f"gain {self.gain:g}"] if self.gain is not None else []
+        return ", ".join(parts) + f"; capture times: {self.clock}"
+
+
+MODE_TOLERANCE = 0.01
+"""Relative difference between an asked and a granted value (frame rate, exposure, gain) that
+counts as granted: drivers round to their own steps."""
+
+
+def mode_mismatches(asked: CameraOptions, granted: CameraMode) -> list[str]:
+    """Each asked setting the granted mode differs from, in words."""
+    out = []
+    for name in ("width", "height", "fps", "format", "exposure_us", "gain"):
+        want, got = getattr(asked, name), getattr(granted, name)
+        if want is None:
+            continue
+        if isinstance(want, str):
+            same = got is not None and want.lower() == str(got).lower()
+        else:
+            same = got is not None and abs(got - want) <= MODE_TOLERANCE * max(abs(want), 1e-9)
+        if not same:
+            out.append(f"{name} {_show(want)} asked, {_show(got)} granted")
+    return out
+
+
+def _show(value: object) -> str:
+    return "none" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
+
+
+class StaleGuard:
+    """Frames that waited in a driver's queue: a frame older on arrival than the youngest of the
+    last ``window`` (the camera's own exposure and transfer time) by more than a frame period was
+    not the newest one when it arrived. A source that finds one counts it and reads again, which
+    drains the queue."""
+
+    def __init__(self, period_ns: int, window: int = 64) -> None:
+        self.period_ns = period_ns
+        self._ages: deque[int] = deque(maxlen=window)
+
+    def stale(self, age_ns: int) -> bool:
+        """Whether a frame that arrived ``age_ns`` after its capture is stale."""
+        self._ages.append(age_ns)
+        return age_ns > min(self._ages) + self.period_ns
 
 
 #: How much nicer (Unix niceness) than the event loop the frame threads run: capture and vision
@@ -110,26 +305,76 @@ class CameraError(Exception):
     """A camera that cannot be opened or read; the message is one line for the CLI."""
 
 
+class CameraLost(CameraError):
+    """A live camera that went away mid-run (unplugged, powered off, its network down): the
+    grabber reopens it when it returns (`CameraSource.reopen`)."""
+
+
 class CameraSource:
     """Base of all sources: subclasses implement `_read` (and `_close`, `_stamp`, `_lease` if
-    needed)."""
+    needed); live cameras also take `CameraOptions` (`OPTIONS` names the ones a source
+    understands), report the granted `mode` and can `reopen`."""
 
+    OPTIONS: ClassVar[frozenset[str]] = frozenset()
+    """The `CameraOptions` this kind of source takes; any other given is an error."""
+    KIND: ClassVar[str] = "this source"
     lend = False
     """Set by a consumer that checks `Frame.intact` after using each image: a source that can
     then hands out its own buffer instead of a copy (the virtual camera's shared slot)."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, options: CameraOptions = CameraOptions()) -> None:
+        unknown = sorted(options.given.keys() - self.OPTIONS)
+        if unknown:
+            takes = (
+                f"takes only {', '.join(sorted(self.OPTIONS))}"
+                if self.OPTIONS
+                else ("takes none (a mode is set on live cameras: /dev/videoN, aravis://)")
+            )
+            raise CameraError(f"camera option {', '.join(unknown)}: {self.KIND} {takes}")
         self.url = url
+        self.options = options
+        self.mode: CameraMode | None = None
+        """What the camera runs in (None where a source has no mode: a folder)."""
+        self.warnings: list[str] = []
+        """How the granted mode differs from the asked one."""
+        self.stale = 0
+        """Frames skipped for having waited in the driver's queue (`StaleGuard`)."""
+        self._stale_guard: StaleGuard | None = None
         self._count = 0
         self._stopping = threading.Event()
+
+    def _granted(self, mode: CameraMode) -> None:
+        """Take the mode read back from the driver: warn of what differs from the asked one
+        (raise with ``strict``); a known frame rate also bounds how old a frame may arrive."""
+        self.mode = mode
+        self.warnings = mode_mismatches(self.options, mode)
+        if self.warnings and self.options.strict:
+            raise CameraError(
+                f"{self.url}: the camera did not grant the mode asked: " + "; ".join(self.warnings)
+            )
+        if mode.fps:
+            self._stale_guard = StaleGuard(round(1e9 / mode.fps))
+
+    def counters(self) -> dict[str, int]:
+        """What the source skipped: stale frames (and, for GenICam cameras, incomplete ones)."""
+        return {"stale": self.stale}
+
+    def reopen(self) -> None:
+        """Open a lost camera again (raises `CameraError` while it is not back)."""
+        raise CameraError(f"{self.url} cannot be reopened")
+
+    def describe(self) -> dict[str, Any]:
+        """The modes and controls the camera offers (the probe's answer); none here."""
+        return {}
 
     def _read(self) -> np.ndarray | None:
         """Block until the next image (any channel count, uint8); None at the end."""
         raise NotImplementedError
 
-    def _stamp(self) -> tuple[int, int]:
-        """(capture time, index) of the image `_read` just returned."""
-        return time.monotonic_ns(), self._count
+    def _stamp(self, arrival_ns: int) -> tuple[int, int]:
+        """(capture time, index) of the image `_read` just returned, which arrived at
+        ``arrival_ns``; sources that know better than the arrival say when it was exposed."""
+        return arrival_ns, self._count
 
     def _lease(self) -> Callable[[], bool] | None:
         """For an image `_read` lent from the source's buffer: whether the buffer still holds
@@ -140,19 +385,26 @@ class CameraSource:
         """Release the device, file or mapping."""
 
     def read(self) -> Frame | None:
-        """The next frame, or None at the end of the stream."""
-        image = self._read()
-        if image is None:
-            return None
-        t_ns, index = self._stamp()
-        lease = self._lease()
-        self._count += 1
-        if image.ndim == 3 and image.shape[2] > 1:
-            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image, lease = cv2.cvtColor(image, code), None
-        elif image.ndim == 3:
-            image = image[..., 0]
-        return Frame(image, t_ns, index, lease)
+        """The next frame, or None at the end of the stream; a frame that waited in the
+        driver's queue is counted (`stale`) and the next one read instead."""
+        while True:
+            image = self._read()
+            if image is None:
+                return None
+            arrival_ns = time.monotonic_ns()
+            t_ns, index = self._stamp(arrival_ns)
+            lease = self._lease()
+            self._count += 1
+            guard = self._stale_guard
+            if guard is not None and guard.stale(arrival_ns - t_ns):
+                self.stale += 1
+                continue
+            if image.ndim == 3 and image.shape[2] > 1:
+                code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+                image, lease = cv2.cvtColor(image, code), None
+            elif image.ndim == 3:
+                image = image[..., 0]
+            return Frame(image, t_ns, index, arrival_ns, lease)
 
     def stop(self) -> None:
         """Make a blocked or future `read` return None soon; safe from any thread."""
@@ -185,9 +437,9 @@ def _quiet_opencv() -> Iterator[None]:
 
 
 class _CaptureSource(CameraSource):
-    def __init__(self, url: str, capture: cv2.VideoCapture) -> None:
-        super().__init__(url)
-        self._cap = capture
+    """A source read through OpenCV's `VideoCapture` (set up by the subclass in `_cap`)."""
+
+    _cap: cv2.VideoCapture
 
     def _read(self) -> np.ndarray | None:
         if self._stopping.is_set():
@@ -199,13 +451,65 @@ class _CaptureSource(CameraSource):
         self._cap.release()
 
 
-class DeviceSource(_CaptureSource):
-    """A live camera: `/dev/videoN` or an index ("0")."""
+V4L2_EXPOSURE_UNIT_US = 100
+"""V4L2's absolute exposure control counts 100 µs steps (OpenCV passes it through)."""
+V4L2_MANUAL_EXPOSURE = 1
+"""V4L2_EXPOSURE_MANUAL, the auto-exposure value OpenCV's V4L2 backend passes through."""
+DEVICE_BUFFERS = 1
+"""Buffers the V4L2 driver queues: one, so a read gets the newest frame, not an old one."""
+MAX_FRAME_AGE_NS = 2_000_000_000
+"""A driver timestamp further in the past than this (or in the future) is not on the monotonic
+clock: the source stamps frames on arrival instead."""
 
-    def __init__(self, target: str) -> None:
+
+def fourcc_text(code: float) -> str | None:
+    """OpenCV's numeric FourCC (CAP_PROP_FOURCC) as its four characters; None if unset."""
+    raw = int(code).to_bytes(4, "little")
+    text = raw.decode("ascii", "replace").strip("\0 ")
+    return text or None
+
+
+def v4l2_capture_ns(pos_msec: float, arrival_ns: int) -> int | None:
+    """When a V4L2 buffer was captured, from its timestamp as OpenCV's V4L2 backend reports it
+    (``CAP_PROP_POS_MSEC``: milliseconds on CLOCK_MONOTONIC for drivers that flag
+    V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC, as uvcvideo does); None if it cannot be one (unset, in the
+    future, or older than `MAX_FRAME_AGE_NS`: a driver stamping on another clock)."""
+    t_ns = round(pos_msec * 1e6)
+    return t_ns if 0 < t_ns <= arrival_ns and arrival_ns - t_ns < MAX_FRAME_AGE_NS else None
+
+
+class DeviceSource(_CaptureSource):
+    """A V4L2 camera (`/dev/videoN` or an index "0") through OpenCV, its mode set from the URL:
+    `/dev/video0?width=1920&height=1080&fps=30&format=MJPG&exposure_us=2000`. Frames carry the
+    driver's buffer timestamp; the driver queues one buffer, and a frame that still waited in it
+    is skipped (`StaleGuard`). An unplugged camera raises `CameraLost` and is reopened by path."""
+
+    OPTIONS = frozenset(
+        {"width", "height", "fps", "format", "exposure_us", "gain", "clock", "strict"}
+    )
+    KIND = "a V4L2 camera"
+
+    def __init__(self, target: str, options: CameraOptions = CameraOptions()) -> None:
+        super().__init__(target, options)
+        if options.clock not in ("auto", "arrival"):
+            raise CameraError(
+                f"camera option clock={options.clock}: a V4L2 camera stamps "
+                "frames with its driver's clock (auto) or on arrival (arrival)"
+            )
+        if options.format is not None and len(options.format) != 4:
+            raise CameraError(
+                f"camera option format={options.format}: a V4L2 pixel format is "
+                "a FourCC of four characters (MJPG, YUYV, GREY)"
+            )
+        self._cap = self._open()
+        self._clock = "device" if options.clock == "auto" else "arrival"
+        self._configure()
+
+    def _open(self) -> cv2.VideoCapture:
+        target = self.url
         if target.isdigit():
             with _quiet_opencv():
-                cap = cv2.VideoCapture(int(target))
+                cap = cv2.VideoCapture(int(target), cv2.CAP_V4L2)
         else:
             if not os.path.exists(target):
                 raise CameraError(f"camera device {target} does not exist")
@@ -213,33 +517,121 @@ class DeviceSource(_CaptureSource):
                 cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
         if not cap.isOpened():
             raise CameraError(f"cannot open camera device {target}")
-        super().__init__(target, cap)
+        return cap
+
+    def _configure(self) -> None:
+        """Set the asked mode (the pixel format first: it decides the sizes on offer), then
+        read back what the driver granted."""
+        cap, o = self._cap, self.options
+        settings: list[tuple[int, float, str]] = []
+        if o.format is not None:
+            settings.append(
+                (cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*o.format), f"format={o.format}")
+            )
+        for prop, value, name in (
+            (cv2.CAP_PROP_FRAME_WIDTH, o.width, "width"),
+            (cv2.CAP_PROP_FRAME_HEIGHT, o.height, "height"),
+            (cv2.CAP_PROP_FPS, o.fps, "fps"),
+        ):
+            if value is not None:
+                settings.append((prop, value, f"{name}={value:g}"))
+        if o.exposure_us is not None:
+            settings.append((cv2.CAP_PROP_AUTO_EXPOSURE, V4L2_MANUAL_EXPOSURE, "manual exposure"))
+            settings.append(
+                (
+                    cv2.CAP_PROP_EXPOSURE,
+                    o.exposure_us / V4L2_EXPOSURE_UNIT_US,
+                    f"exposure_us={o.exposure_us:g}",
+                )
+            )
+        if o.gain is not None:
+            settings.append((cv2.CAP_PROP_GAIN, o.gain, f"gain={o.gain:g}"))
+        settings.append((cv2.CAP_PROP_BUFFERSIZE, DEVICE_BUFFERS, f"{DEVICE_BUFFERS} buffer"))
+        for prop, value, what in settings:
+            if not cap.set(prop, value):
+                raise CameraError(f"camera {self.url} refuses {what}")
+        exposure = cap.get(cv2.CAP_PROP_EXPOSURE)
+        gain = cap.get(cv2.CAP_PROP_GAIN)
+        self._granted(
+            CameraMode(
+                width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                fps=cap.get(cv2.CAP_PROP_FPS) or None,
+                format=fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)),
+                exposure_us=exposure * V4L2_EXPOSURE_UNIT_US if exposure > 0 else None,
+                gain=gain if gain >= 0 else None,
+                clock=self._clock,
+            )
+        )
+
+    def _read(self) -> np.ndarray | None:
+        if self._stopping.is_set():
+            return None
+        ok, image = self._cap.read()
+        if not ok:
+            if self._stopping.is_set():
+                return None
+            raise CameraLost(f"camera {self.url} gave no frame (unplugged?)")
+        return image
+
+    def _stamp(self, arrival_ns: int) -> tuple[int, int]:
+        t_ns = None
+        if self._clock == "device":
+            t_ns = v4l2_capture_ns(self._cap.get(cv2.CAP_PROP_POS_MSEC), arrival_ns)
+        return (arrival_ns if t_ns is None else t_ns), self._count
+
+    def reopen(self) -> None:
+        self._cap.release()
+        self._cap = self._open()
+        self._configure()
+
+    def describe(self) -> dict[str, Any]:
+        """The formats, sizes, frame rates and controls the driver lists, as ``v4l2-ctl``
+        (Debian's v4l-utils) prints them: OpenCV cannot enumerate them."""
+        tool = shutil.which("v4l2-ctl")
+        if tool is None:
+            return {"modes": "install v4l-utils (v4l2-ctl) to list this camera's modes"}
+        listed = subprocess.run(
+            [tool, "-d", self.url, "--list-formats-ext", "--list-ctrls"],
+            capture_output=True, text=True, timeout=10,
+        )  # fmt: skip
+        return {"v4l2-ctl": (listed.stdout or listed.stderr).strip()}
 
 
 class VideoFileSource(_CaptureSource):
     """A recorded video, read as fast as asked (see `FrameGrabber` pace)."""
 
-    def __init__(self, target: str) -> None:
+    KIND = "a video file"
+
+    def __init__(self, target: str, options: CameraOptions = CameraOptions()) -> None:
+        super().__init__(target, options)
         if not os.path.isfile(target):
             raise CameraError(f"video file not found: {target}")
         with _quiet_opencv():
-            cap = cv2.VideoCapture(target)
-        if not cap.isOpened():
+            self._cap = cv2.VideoCapture(target)
+        if not self._cap.isOpened():
             raise CameraError(f"cannot open video file {target} (not a video OpenCV can decode)")
-        super().__init__(target, cap)
+        cap = self._cap
+        self.mode = CameraMode(
+            int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            cap.get(cv2.CAP_PROP_FPS) or None,
+        )
 
 
 class FolderSource(CameraSource):
     """The images of a folder, in sorted file-name order."""
 
-    def __init__(self, target: str) -> None:
+    KIND = "an image folder"
+
+    def __init__(self, target: str, options: CameraOptions = CameraOptions()) -> None:
+        super().__init__(target, options)
         folder = Path(target)
         if not folder.is_dir():
             raise CameraError(f"image folder not found: {target}")
         self._files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self._files:
             raise CameraError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in folder {target}")
-        super().__init__(target)
 
     def _read(self) -> np.ndarray | None:
         if self._stopping.is_set() or self._count >= len(self._files):
@@ -339,6 +731,17 @@ class VcamLayout:
     def closed(self, buf) -> bool:
         return struct.unpack_from("<I", buf, _VCAM_CLOSED_AT)[0] != 0
 
+    def find(self, buf, t_ns: int) -> tuple[int | None, int]:
+        """The number of the frame captured at ``t_ns`` if a slot still holds it, and the
+        newest capture time any slot holds."""
+        newest = 0
+        for slot in range(self.slots):
+            number, t = _VCAM_SLOT.unpack_from(buf, self._slot_at(slot))
+            if number and t == t_ns:
+                return number, t
+            newest = max(newest, t)
+        return None, newest
+
     def holds(self, buf, number: int) -> bool:
         """Reader side: whether frame `number`'s slot still holds it, complete."""
         return _VCAM_SLOT.unpack_from(buf, self._slot_at(number % self.slots))[0] == number
@@ -407,41 +810,99 @@ class FrameBell:
             _FUTEX(_SYS_FUTEX, self._word, _FUTEX_WAKE, ctypes.c_int(2**31 - 1), None, None, 0)
 
 
+class FrameWriter:
+    """Publishes frames into the shared memory ``name``, laid out as a `VcamLayout`: the HIL's
+    virtual camera, and the perception process's ring of analysed frames for the flight
+    recorder. A frame is drawn straight into its slot (`begin`, `commit`) or copied there
+    (`publish`); each one rings the `FrameBell`. `close` tells readers the stream has ended and
+    removes the memory (a reader that mapped it keeps its mapping)."""
+
+    def __init__(self, name: str, width: int, height: int, slots: int = 3) -> None:
+        self.name = name
+        self.layout = VcamLayout(width, height, slots)
+        try:
+            self._shm = shared_memory.SharedMemory(name, create=True, size=self.layout.size)
+        except FileExistsError:
+            raise FileExistsError(
+                f"shared memory {name!r} already exists (another writer is running, or remove "
+                f"the stale /dev/shm/{name})"
+            ) from None
+        self.layout.write_header(self._shm.buf)
+        self._bell = FrameBell(self._shm.buf)
+        self._closed = False
+
+    def begin(self, number: int) -> np.ndarray:
+        """The slot of frame ``number`` (from 1, increasing), to draw the frame into before
+        `commit`; readers see it as being written until then."""
+        return self.layout.begin(self._shm.buf, number)
+
+    def commit(self, number: int, t_ns: int) -> None:
+        """Frame ``number``, captured at ``t_ns``, is complete: readers are woken."""
+        self.layout.commit(self._shm.buf, number, t_ns)
+        self._bell.ring()
+
+    def publish(self, number: int, t_ns: int, image: np.ndarray) -> None:
+        """Frame ``number`` (from 1, increasing) captured at ``t_ns``: a copy of ``image``."""
+        np.copyto(self.begin(number), image)
+        self.commit(number, t_ns)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.layout.mark_closed(self._shm.buf)
+        self._bell.ring()
+        self._shm.close()
+        self._shm.unlink()
+
+
 def shm_path(name: str) -> Path:
     """Where Linux exposes the POSIX shared memory `name` (what `SharedMemory(name)` creates)."""
     return Path("/dev/shm") / name
 
 
+ATTACH_S = 1.0
+"""How long a reader waits for a writer that has created its segment but not its header yet."""
+
+
+def attach_frames(name: str) -> tuple[mmap.mmap, VcamLayout]:
+    """Map the frame segment ``name`` (a `VcamLayout` in /dev/shm) read-only; `CameraError` if
+    there is none.
+
+    The segment is mapped through /dev/shm rather than with `SharedMemory(name)`, which on
+    Python < 3.13 registers it with this process's resource tracker, and the tracker would
+    unlink the writer's segment when this reader exits."""
+    deadline = time.monotonic() + ATTACH_S
+    while True:
+        try:
+            with open(shm_path(name), "rb") as f:
+                buf = mmap.mmap(f.fileno(), 0, prot=mmap.PROT_READ)
+            return buf, VcamLayout.from_buffer(buf)
+        except FileNotFoundError:
+            raise CameraError(
+                f"virtual camera {name!r} not found (is the HIL virtual camera running?)"
+            ) from None
+        except ValueError as exc:
+            if time.monotonic() > deadline:
+                raise CameraError(f"virtual camera {name!r}: {exc}") from None
+            time.sleep(0.01)
+
+
 class VirtualSource(CameraSource):
-    """`virtual://NAME`: frames the HIL renderer publishes in shared memory NAME.
+    """`virtual://NAME`: frames the HIL renderer publishes in shared memory NAME, stamped when
+    the renderer began to draw them (the simulated exposure)."""
 
-    The segment is mapped read-only through /dev/shm rather than with `SharedMemory(name)`,
-    which on Python < 3.13 registers it with this process's resource tracker, and the tracker
-    would unlink the writer's segment when this reader exits."""
+    KIND = "the virtual camera"
 
-    ATTACH_S = 1.0
-    """How long to wait for a writer that has created the segment but not its header yet."""
-
-    def __init__(self, target: str) -> None:
+    def __init__(self, target: str, options: CameraOptions = CameraOptions()) -> None:
         name = target.strip("/")
         if not name or "/" in name:
             raise CameraError(f"bad virtual camera name {target!r} (expected virtual://NAME)")
-        super().__init__(f"virtual://{name}")
-        deadline = time.monotonic() + self.ATTACH_S
-        while True:
-            try:
-                with open(shm_path(name), "rb") as f:
-                    self._buf = mmap.mmap(f.fileno(), 0, prot=mmap.PROT_READ)
-                self._layout = VcamLayout.from_buffer(self._buf)
-                break
-            except FileNotFoundError:
-                raise CameraError(
-                    f"virtual camera {name!r} not found (is the HIL virtual camera running?)"
-                ) from None
-            except ValueError as exc:
-                if time.monotonic() > deadline:
-                    raise CameraError(f"virtual camera {name!r}: {exc}") from None
-                time.sleep(0.01)
+        super().__init__(f"virtual://{name}", options)
+        self._buf, self._layout = attach_frames(name)
+        self.mode = CameraMode(
+            self._layout.width, self._layout.height, format="Mono8", clock="render"
+        )
         self._last = 0
         self._last_t = 0
         self._bell: FrameBell | None = FrameBell(self._buf)
@@ -463,7 +924,7 @@ class VirtualSource(CameraSource):
             bell.wait(latest, WAIT_S)
         return None
 
-    def _stamp(self) -> tuple[int, int]:
+    def _stamp(self, arrival_ns: int) -> tuple[int, int]:
         return self._last_t, self._last
 
     def _lease(self) -> Callable[[], bool] | None:
@@ -489,13 +950,15 @@ _SOURCES: dict[str, str] = {
     "video": "udan.edge.camera:VideoFileSource",
     "folder": "udan.edge.camera:FolderSource",
     "virtual": "udan.edge.camera:VirtualSource",
+    "aravis": "udan.edge.genicam:AravisSource",
 }
 _URL = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://(.*)$")
 
 
 def register_source(scheme: str, target: str) -> None:
     """Make `scheme://...` open the class `target` ("package.module:Class"), imported when first
-    used; the class takes the part of the URL after "scheme://"."""
+    used; the class takes the part of the URL after "scheme://" and the `CameraOptions` of its
+    query."""
     _SOURCES[scheme.lower()] = target
 
 
@@ -504,25 +967,36 @@ def _source_class(scheme: str) -> type[CameraSource]:
     return getattr(importlib.import_module(module), name)
 
 
-def open_camera(url: str) -> CameraSource:
-    """The source `url` names: `scheme://...` (device, video, folder, virtual), `/dev/videoN`
-    or an index, an image folder, or a video file."""
-    m = _URL.match(url)
+def split_camera_url(url: str) -> tuple[str, str, CameraOptions]:
+    """(scheme, target, options) of a camera URL: `scheme://TARGET?OPTIONS`, `/dev/videoN` or
+    an index, an image folder, or a video file (a path that exists is taken whole, even with a
+    "?" in its name)."""
+    base, query = url, ""
+    if "?" in url and not os.path.exists(url):
+        base, _, query = url.partition("?")
+    options = CameraOptions.parse(query)
+    m = _URL.match(base)
     if m:
         scheme, target = m.group(1).lower(), m.group(2)
         if scheme not in _SOURCES:
             known = ", ".join(f"{s}://" for s in sorted(_SOURCES))
             raise CameraError(f"unknown camera scheme {scheme}:// in {url!r} (known: {known})")
-    elif url.isdigit() or url.startswith("/dev/"):
-        scheme, target = "device", url
-    elif os.path.isdir(url):
-        scheme, target = "folder", url
-    elif os.path.isfile(url) or Path(url).suffix.lower() in VIDEO_SUFFIXES:
-        scheme, target = "video", url
+    elif base.isdigit() or base.startswith("/dev/"):
+        scheme, target = "device", base
+    elif os.path.isdir(base):
+        scheme, target = "folder", base
+    elif os.path.isfile(base) or Path(base).suffix.lower() in VIDEO_SUFFIXES:
+        scheme, target = "video", base
     else:
         raise CameraError(f"no camera, video file or image folder at {url!r}")
+    return scheme, target, options
+
+
+def open_camera(url: str) -> CameraSource:
+    """The source `url` names (`split_camera_url`), in the mode its options ask for."""
+    scheme, target, options = split_camera_url(url)
     try:
-        return _source_class(scheme)(target)
+        return _source_class(scheme)(target, options)
     except (OSError, cv2.error) as exc:
         detail = (getattr(exc, "strerror", None) or str(exc)).strip().splitlines()[0]
         raise CameraError(f"cannot open camera {url}: {detail}") from None
@@ -533,9 +1007,13 @@ class FrameGrabber:
     """Reads `source` in a thread and hands the newest frame to asyncio; owns the source.
 
     The thread starts with `start()` (or the first `next_frame`). `pace` (frames per second)
-    plays a file or folder at a camera's rate instead of as fast as it decodes."""
+    plays a file or folder at a camera's rate instead of as fast as it decodes. A live camera
+    that is lost (`CameraLost`) is reopened every `REOPEN_S` until it is back; both are news
+    (`take_news`) for whoever reports the run."""
 
     JOIN_S = 2.0
+    REOPEN_S = 0.5
+    """How often a lost camera is tried again."""
 
     def __init__(self, source: CameraSource, *, pace: float | None = None) -> None:
         self.source = source
@@ -551,6 +1029,7 @@ class FrameGrabber:
         self._error: Exception | None = None
         self._waiter: tuple[asyncio.AbstractEventLoop, asyncio.Event] | None = None
         self._stop = threading.Event()
+        self._news: list[tuple[str, dict[str, Any]]] = []
         self._thread = threading.Thread(target=self._run, name=f"camera {source.url}", daemon=True)
 
     def start(self) -> None:
@@ -568,7 +1047,7 @@ class FrameGrabber:
                     if self._stop.wait(max(0.0, due - time.monotonic())):
                         break
                     due += 1.0 / self.pace
-                frame = self.source.read()
+                frame = self._read()
                 if frame is None:
                     break
                 with self._lock:
@@ -584,6 +1063,39 @@ class FrameGrabber:
             with self._lock:
                 self._ended = True
                 self._wake()
+
+    def _read(self) -> Frame | None:
+        """The source's next frame; a lost camera is reopened until it is back (or the grabber
+        is closed: None)."""
+        while not self._stop.is_set():
+            try:
+                return self.source.read()
+            except CameraLost as lost:
+                self._tell("camera_lost", reason=str(lost))
+                since = time.monotonic()
+                while not self._stop.wait(self.REOPEN_S):
+                    try:
+                        self.source.reopen()
+                    except CameraError:
+                        continue
+                    self._tell("camera_back", after_s=round(time.monotonic() - since, 3))
+                    break
+        return None
+
+    def _tell(self, kind: str, **fields: Any) -> None:
+        with self._lock:
+            self._news.append((kind, fields))
+
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        """What happened to the camera since the last call: ("camera_lost", {"reason"}),
+        ("camera_back", {"after_s"})."""
+        with self._lock:
+            news, self._news = self._news, []
+        return news
+
+    def counters(self) -> dict[str, int]:
+        """Frames read and overwritten here, and what the source skipped."""
+        return {"captured": self.captured, "dropped": self.dropped, **self.source.counters()}
 
     def _wake(self) -> None:
         """Wake the coroutine waiting in `next_frame` or the threads in `wait_frame`, if any

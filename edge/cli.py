@@ -1,12 +1,18 @@
 """udan-edge: drive a fleet from a camera with an exported policy.
 
     udan-edge --camera /dev/video0 --model policy.onnx --fleet fleet.toml [--transport udp]
+    udan-edge --camera "aravis://192.168.1.20?width=1920&height=1200&fps=40" ...
     udan-edge --sim [--cars 5] [--duration 30]      # virtual camera + mock fleet, bundled policy
+    udan-edge ... --record run.mcap                 # a flight recording of the run
+    udan-edge --replay run.mcap [--model other.onnx] [--vision]   # its decisions again
 
 ``--sim`` starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback
 UDP, the virtual camera) as its own process and drives it with this same runtime; the edge
-never imports it. Bad input — a missing or corrupt model, a camera that cannot be opened, a
-malformed fleet file, a transport that cannot be bound — is one line on stderr and exit code 2.
+never imports it. ``--record`` writes the run's flight recording off the loop
+(:mod:`udan.edge.recorder`); ``--replay`` feeds one to a new control core (:mod:`udan.edge.replay`)
+with no camera and no car. Bad input — a missing or corrupt model, a camera that cannot be opened
+or refuses its mode, a malformed fleet file, a transport that cannot be bound, a file that is not
+a flight recording, a model for another task — is one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -14,6 +20,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -33,24 +41,30 @@ from udan.edge.core import ControlCore, MotionRules
 from udan.edge.decide import DecisionStep, TaskError, task_of
 from udan.edge.episodes import EpisodePlan, EpisodePlayer, WorldError
 from udan.edge.fleet import Fleet
+from udan.edge.flightlog import FlightLogError
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CarLink
 from udan.edge.live import MIN_TOKEN_CHARS, LiveView, WebError, web_address
 from udan.edge.overlay import OverlaySettings
 from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
 from udan.edge.perception import (
+    FrameRing,
+    Perception,
     PerceptionError,
     ProcessPerception,
+    RingSpec,
     ThreadPerception,
     VisionSettings,
 )
+from udan.edge.recorder import DEFAULT_QUALITY, DEFAULT_RATE, FlightRecorder
+from udan.edge.replay import ReplayError
 from udan.edge.shell import EdgeShell, LoopConfig
 from udan.edge.sidecar import exit_with_parent, parent_watch_env
 from udan.edge.telemetry import DEADLINE_NS, Telemetry
 from udan.edge.transport import TransportError, free_udp_port, host_port, open_transport
 from udan.envs.errors import OneLineParser
-from udan.export.metadata import MetadataError, obs_spec
-from udan.fleetfile import FleetFileError, load_fleet, write_fleet
+from udan.export.metadata import MetadataError, obs_spec, project_version
+from udan.fleetfile import CarEntry, FleetFileError, load_fleet, write_fleet
 from udan.models import DEFAULT_POLICY, bundled_policy
 
 PROG = "udan-edge"
@@ -99,7 +113,11 @@ def _parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     src = p.add_argument_group("what to drive")
     src.add_argument("--sim", action="store_true", help="virtual camera + mock fleet (HIL world)")
-    src.add_argument("--camera", help="/dev/videoN, an index, a video file, a folder, virtual://N")
+    src.add_argument(
+        "--camera", help="/dev/videoN, an index, aravis://DEVICE, a video file, a folder, "
+        "virtual://N; a live camera's mode as ?width=W&height=H&fps=F&format=...&exposure_us=..."
+        "&gain=...&strict=1 (docs/lab-setup.md)",
+    )  # fmt: skip
     src.add_argument("--model", type=Path, help="exported policy (default with --sim: the bundled "
                      f"{DEFAULT_POLICY} policy)")  # fmt: skip
     src.add_argument("--fleet", type=Path, help="fleet.toml: car id, marker, address, key")
@@ -124,6 +142,16 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--body-mm", type=float, default=220.0,
         help="side of the cars' (square) bodies: how close two may come (docs/motion.md)",
+    )  # fmt: skip
+    run.add_argument(
+        "--cell-time-ms", type=float, default=200.0,
+        help="the cars' time per cell (with --sim: the mock cars'): the guard predicts their "
+        "moves with it (docs/motion.md)",
+    )  # fmt: skip
+    run.add_argument(
+        "--accel-share", type=float, default=0.25,
+        help="the cars' speed profile: share of a move's time spent accelerating, as long "
+        "braking (0: constant speed, as the --sim cars)",
     )  # fmt: skip
     run.add_argument("--world", help="HIL world control HOST:PORT: play its episodes")
     run.add_argument("--episodes", type=int, help="with --world: episodes to play")
@@ -154,11 +182,32 @@ def _parser() -> argparse.ArgumentParser:
         f"{MIN_TOKEN_CHARS} characters; needed for a non-loopback --web; default: "
         f"${WEB_TOKEN_ENV}, which keeps it off the process list)",
     )  # fmt: skip
+    rec = p.add_argument_group("flight recorder")
+    rec.add_argument("--record", type=Path, help="write the run's flight recording (MCAP) here")
+    rec.add_argument(
+        "--record-rate", type=float, default=DEFAULT_RATE,
+        help="frames a second recorded besides the ones decisions used (JPEG; 0: none)",
+    )  # fmt: skip
+    rec.add_argument(
+        "--record-quality", default=str(DEFAULT_QUALITY),
+        help="JPEG quality of those (1-100), or lossless",
+    )  # fmt: skip
+    rec.add_argument(
+        "--replay", type=Path, help="replay a recording's decisions (with --model: another "
+        "policy's) through the control core; no camera, no car",
+    )  # fmt: skip
+    rec.add_argument(
+        "--vision", action="store_true",
+        help="with --replay: run the vision again on the recorded frames and compare",
+    )  # fmt: skip
+    rec.add_argument(
+        "--still", type=Path, help="with --replay --vision: a recorded frame, its sightings drawn "
+        "(PNG)",
+    )  # fmt: skip
     sim = p.add_argument_group("--sim")
     sim.add_argument("--cars", type=int, default=5, help="mock cars (1-5)")
     sim.add_argument("--obstacles", default="0-9", help="obstacles per episode, a range")
     sim.add_argument("--seed", type=int, default=0, help="episode layouts")
-    sim.add_argument("--cell-time-ms", type=float, default=200.0, help="mock cars' time per cell")
     return p
 
 
@@ -203,6 +252,62 @@ def _transport_options(args: argparse.Namespace) -> dict[str, Any]:
     return {}
 
 
+def code_version() -> str:
+    """The package's version, and the git commit of its source tree when it is one."""
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(Path(__file__).parent), "describe", "--always", "--dirty"],
+            capture_output=True, text=True, timeout=5,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return f"{project_version()} ({commit})" if commit else project_version()
+
+
+def _recording_meta(
+    args: argparse.Namespace,
+    policy: Any,
+    task: str,
+    settings: VisionSettings,
+    cars: list[CarEntry],
+    perception: Perception,
+    config: LoopConfig,
+    motion: MotionRules,
+) -> dict[str, Any]:
+    """The run's metadata for its flight recording (no key of any car: ids, markers and
+    addresses only)."""
+    calibration = args.calibration
+    return {
+        "code_version": code_version(),
+        "realtime_ns": time.time_ns(),
+        "monotonic_ns": time.monotonic_ns(),
+        "model": str(args.model.resolve()),
+        "model_sha256": hashlib.sha256(args.model.read_bytes()).hexdigest(),
+        "env": policy.graph.metadata["env"],
+        "task": task,
+        "calibration_file": None if calibration is None else str(Path(calibration).resolve()),
+        "calibration_sha256": None
+        if calibration is None
+        else hashlib.sha256(Path(calibration).read_bytes()).hexdigest(),
+        "camera": perception.camera_info,
+        "fleet": [
+            {
+                "id": c.car_id,
+                "marker": c.marker,
+                "address": None if c.address is None else f"{c.address[0]}:{c.address[1]}",
+                "marker_height_m": c.marker_height_m,
+            }
+            for c in cars
+        ],
+        "vision": dataclasses.asdict(settings),
+        "lost_s": args.lost,
+        "loop": dataclasses.asdict(config),
+        "motion": dataclasses.asdict(motion),
+        "perception": args.perception,
+        "record": {"rate": args.record_rate, "quality": args.record_quality},
+    }
+
+
 async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dict[str, Any]:
     geometry = ArenaGeometry()
     cars = load_fleet(args.fleet)
@@ -217,11 +322,12 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         thumbnails=args.web is not None,
         markers={c.car_id: c.marker for c in cars},
     )
+    ring = RingSpec(f"udan-ring-{os.getpid()}", args.record_rate) if args.record else None
     # the perception (and web) processes start first and open the camera (bind the page's
     # address) while the model loads
-    perception = None
+    perception: Perception | None = None
     if args.perception == "process":
-        perception = ProcessPerception(args.camera, settings, overlay)
+        perception = ProcessPerception(args.camera, settings, ring, overlay)
     live = None
     try:
         if args.web is not None:
@@ -232,11 +338,12 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
                 "deadline_ms": DEADLINE_NS / 1e6,
             }
             live = LiveView(*web_address(args.web, args.web_token), args.web_token, config)
-        _, policy_step = load_policy(args.model, geometry)
+        policy, policy_step = load_policy(args.model, geometry)
         transport = open_transport(args.transport, cars, **_transport_options(args))
         if perception is None:
             grabber = FrameGrabber(open_camera(args.camera))
-            perception = ThreadPerception(grabber, settings.build(), overlay)
+            frames = None if ring is None else FrameRing(ring)
+            perception = ThreadPerception(grabber, settings.build(), frames, overlay)
         perception.wait_ready()
         if live is not None:
             print(f"{PROG}: live view at {live.wait_ready()}", flush=True)
@@ -246,18 +353,32 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         if live is not None:
             live.close()
         raise
-    link = CarLink(cars, transport)
-    telemetry = Telemetry(args.telemetry, live=not args.quiet)
+    for warning in perception.camera_info.get("warnings", []):
+        print(f"{PROG}: warning: camera {args.camera}: {warning}", file=sys.stderr)
     config = LoopConfig(step_timeout_s=args.step_timeout, duration_s=args.duration)
-    fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
     motion = MotionRules(
         args.settle_mm / 1000,
         math.radians(args.settle_deg),
         geometry=geometry,
         body_m=args.body_mm / 1000,
+        cell_time_s=args.cell_time_ms / 1000,
+        accel_share=0.0 if args.sim else args.accel_share,
     )
-    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion)
-    shell = EdgeShell(perception, link, core, telemetry, config, live)
+    recorder = None
+    if args.record is not None:
+        meta = _recording_meta(
+            args, policy, policy_step.task, settings, cars, perception, config, motion
+        )
+        recorder = FlightRecorder(
+            args.record, meta, ring=ring, rate=args.record_rate, quality=args.record_quality
+        )
+    link = CarLink(cars, transport)
+    telemetry = Telemetry(
+        args.telemetry, live=not args.quiet, tap=None if recorder is None else recorder.telemetry
+    )
+    fleet = Fleet({c.car_id: c.marker for c in cars}, lost_s=args.lost)
+    core = ControlCore(fleet, policy_step, time.monotonic_ns, config.step_timing, motion, recorder)
+    shell = EdgeShell(perception, link, core, telemetry, config, live, recorder)
     play = None
     if world is not None:
         play = EpisodePlayer(EpisodePlan(world, args.episodes, args.episode_steps))
@@ -266,16 +387,22 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
         await link.start()
     except BaseException:
         perception.close()
+        if recorder is not None:
+            recorder.close()
         if live is not None:
             live.close()
         raise
     try:
-        return await shell.run(play)
+        report = await shell.run(play)
     finally:
         await link.close()
         telemetry.close()
         if live is not None:
             live.close()
+        recording = None if recorder is None else recorder.close()
+    if recording is not None:
+        report["recording"] = recording
+    return report
 
 
 def _start_world(args: argparse.Namespace, fleet: Path, edge: str, camera: str) -> tuple:
@@ -364,15 +491,83 @@ def _event_loop_runner() -> Any:
     return uvloop.run
 
 
+def _quality(text: str) -> int | None:
+    """``--record-quality``: a JPEG quality, or None for lossless."""
+    if text == "lossless":
+        return None
+    if not text.isdigit() or not 1 <= int(text) <= 100:
+        raise UsageError(f"--record-quality {text}: a JPEG quality 1-100, or lossless")
+    return int(text)
+
+
+def _replay(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
+    """``--replay``: the report and the exit code (1 if the recorded model decided otherwise)."""
+    from udan.edge.flightlog import read_flight_log
+    from udan.edge.replay import check_model, replay_decisions, replay_vision
+
+    if args.sim or args.camera:
+        raise UsageError("--replay drives no camera and no car: drop --sim and --camera")
+    log = read_flight_log(args.replay)
+    model = args.model or Path(log.meta["model"])
+    if not model.is_file():
+        raise UsageError(f"the recorded model {model} is not here: give --model")
+    geometry = ArenaGeometry(**log.meta["vision"]["geometry"])
+    _, policy_step = load_policy(model, geometry)
+    same = check_model(log, policy_step.task, model)
+    decisions = replay_decisions(log, policy_step)
+    report: dict[str, Any] = {
+        "recording": str(args.replay),
+        "model": str(model),
+        "recorded_model": log.meta["model"],
+        "same_model": same,
+        "decisions": decisions,
+    }
+    whose = "its own model" if same else f"model {model}"
+    steps, identical = decisions["steps"], decisions["identical"]
+    share = f"{100 * identical / steps:.2f} %" if steps else "-"
+    line = f"replayed {steps} decisions of {args.replay} with {whose}: "
+    line += f"{identical} as recorded ({share})"
+    if identical < steps:
+        line += f", {steps - identical} differ ({decisions['commands_differing']} commands)"
+    rounds, rounds_same = decisions["recentring_rounds"], decisions["recentring_identical"]
+    if rounds:
+        line += f"; {rounds_same} of {rounds} re-centring rounds as recorded"
+    if decisions["journal_gaps"]:
+        line += f" (the recording misses {decisions['journal_gaps']} of the core's inputs)"
+    if args.vision:
+        vision = report["vision"] = replay_vision(log, args.still)
+        lossless = vision["lossless"]
+        if lossless["sightings"]:
+            line += (
+                f"; vision on {lossless['frames']} lossless frames: "
+                f"{100 * lossless['same_cell_share']:.2f} % of {lossless['sightings']} sightings "
+                f"in the recorded cell, offset p99 {lossless['offset_mm']['p99']} mm"
+            )
+        else:
+            line += "; vision: no lossless frame with a recorded scene"
+    report["final"] = line
+    return report, int(same and (identical < steps or rounds_same < rounds))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code (2 on bad input)."""
     exit_with_parent()  # if whoever started us asked (udan-hil run): its end is our SIGTERM
     args = _parser().parse_args(argv)
     INTERRUPTS.install()
+    code = 0
     try:
         _writable(args.report, "--report")
         _writable(args.telemetry, "--telemetry")
         _writable(args.video, "--video")
+        _writable(args.record, "--record")
+        args.record_quality = _quality(args.record_quality)
+        if not 0 <= args.record_rate <= 1000:
+            raise UsageError("--record-rate takes 0-1000 frames a second")
+        if args.vision and args.replay is None:
+            raise UsageError("--vision goes with --replay")
+        if args.still is not None and not args.vision:
+            raise UsageError("--still goes with --replay --vision")
+        _writable(args.still, "--still")
         if not (0 < args.settle_mm < 1000 * _half_cell_m() and 0 < args.settle_deg < 90):
             raise UsageError(
                 f"--settle-mm {args.settle_mm:g} / --settle-deg {args.settle_deg:g}: a tolerance "
@@ -384,10 +579,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"--body-mm {args.body_mm:g}: a car's body must be above 0 and smaller than a "
                 f"cell ({2000 * _half_cell_m():.0f} mm)"
             )
+        if not args.cell_time_ms > 0:
+            raise UsageError(f"--cell-time-ms {args.cell_time_ms:g}: a move takes some time")
+        if not 0 <= args.accel_share < 0.5:
+            raise UsageError(f"--accel-share {args.accel_share:g}: a share of a move, 0 to 0.5")
         if args.web is not None:
             web_address(args.web, args.web_token)  # before anything starts
         if args.realtime:
             _realtime()
+        if args.replay is not None:
+            report, code = _replay(args)
+            return _finish(args, report, code)
         if args.sim:
             runner = _sim(args)
         else:
@@ -399,7 +601,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = _event_loop_runner()(runner)
     except (
         UsageError, CameraError, VisionError, FleetFileError, TransportError, TaskError,
-        WorldError, WebError,
+        WorldError, WebError, FlightLogError, ReplayError,
     ) as err:  # fmt: skip
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
@@ -417,10 +619,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: fatal: {type(err).__name__}: {err}", file=sys.stderr)
         return 1
     report["scheduler"] = scheduler()
+    recording = report.get("recording")
+    if recording is not None and (recording["records_dropped"] or "error" in recording):
+        print(
+            f"{PROG}: warning: the flight recording {recording['file']} is incomplete: "
+            f"{recording.get('error') or str(recording['records_dropped']) + ' records dropped'}",
+            file=sys.stderr,
+        )
+    return _finish(args, report, code)
+
+
+def _finish(args: argparse.Namespace, report: dict[str, Any], code: int) -> int:
+    """Write the report, print the final line; ``code``."""
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=1), encoding="utf-8")
     print(f"{PROG}: {report['final']}" + (f"; report {args.report}" if args.report else ""))
-    return 0
+    return code
 
 
 if __name__ == "__main__":

@@ -28,6 +28,13 @@ it should be and errors do not add up (docs/motion.md). Real bodies need more
 entering a cell another leaves is sent its command only once that car accepted its own
 (``Decision.after``, honoured by the link), and between steps :meth:`ControlCore.guard` stops a
 car about to touch another.
+
+Everything the core consumes can be written down as it comes (a :class:`CoreJournal`, in the
+manner of aioquic's QUIC logger): each call's inputs, what the link said about the cars, the
+``now`` values and the decision clock. Fed the same entries in the same order, a core with the
+same policy and motion rules makes the same decisions, re-centring rounds and guard stops bit
+for bit (``udan-edge --replay``, :mod:`udan.edge.replay`); with another policy, the decisions
+that policy would have made.
 """
 
 from __future__ import annotations
@@ -35,17 +42,18 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from udan.edge.bodies import closing_in, corner_delays, crossing
+from udan.edge.bodies import Plan, closing_in, corner_delays, crossing
 from udan.edge.decide import Decision, DecisionStep
 from udan.edge.fleet import Cell, Change, Fleet, FleetState, Seen
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.protocol import Guidance
 from udan.edge.safety import STOP, filter_moves
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT
+from udan.profile import move_span
 
 if TYPE_CHECKING:  # data the core reads; it runs neither the link nor the vision
     from udan.edge.link import CommandReport, DispatchReport
@@ -65,6 +73,23 @@ class StepTiming:
     """Longest a step waits for moves to finish before deciding anyway."""
     unseen_grace_ns: int = 100_000_000
     """Longest a step waits for a car the camera missed (then it is judged on its last cell)."""
+
+
+class CoreJournal(Protocol):
+    """Takes every input of a core as it comes: ``log(call, *inputs)`` with the calls
+
+    - ``start(stepped_ns, timing)``: the clock's first reading, and the step timing;
+    - ``see(now, ready, scene)``, ``due(now, moving)`` (the cars the link said had not finished
+      their move), ``decide(now, decided_ns, state, decision)`` (the decision clock's reading,
+      and the step's fleet state and decision for whoever reads the journal),
+      ``dispatched(state_ns, report)``, ``recentred(recentring, report)`` (a re-centring round
+      :meth:`ControlCore.due` gave, and its dispatch), ``guard(moving)`` (on the last scene
+      seen, while cars move), ``wait_for_moves(now)``, ``new_episode(now)``,
+      ``credit_last_step(rewards)`` (on the last scene seen) and ``emergency_stop()``.
+
+    It must be cheap: it runs inside the control step (keep the entries, send them later)."""
+
+    def log(self, call: str, *inputs: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -87,6 +112,39 @@ class MotionRules:
     guard_horizon_s: float = 0.08
     """How far ahead the guard looks for bodies about to touch: two frames at 40 FPS (the
     frame's analysis and the stop's way to the car) and some."""
+    cell_time_s: float = 0.2
+    """The cars' time per cell (their controllers' setting; the HIL's mock cars' is
+    ``--cell-time-ms``): the guard predicts a commanded move with it, and start delays count
+    in it."""
+    accel_share: float = 0.25
+    """The cars' speed profile: the share of a move's time spent accelerating, as long braking
+    (protocol section 8; the mock cars' at every motion level but ``0``)."""
+    follow_gap_s: float = 0.04
+    """How long after its leader a car that follows it straight (entering the cell it leaves,
+    the same way) starts: a slipping leader and a follower setting off together leave the
+    guard too little time to see the slip and stop the follower at short cell times
+    (docs/motion.md gives the figures)."""
+
+    @property
+    def follow_delay(self) -> float:
+        """The follow gap in cell times (:func:`udan.edge.bodies.corner_delays`)."""
+        return self.follow_gap_s / self.cell_time_s
+
+    def plan(self, guidance: Guidance, taken_ns: int) -> Plan | None:
+        """The move a car that took a command with ``guidance`` at ``taken_ns`` drives, as
+        its controller plans it (protocol section 8), if the guidance has its measured pose."""
+        if guidance.pose is None:
+            return None
+        (x, y, heading), (tx, ty, th) = guidance.pose, guidance.target
+        length = math.hypot(tx - x, ty - y)
+        turns = abs(math.remainder(th - heading, math.tau)) / (math.pi / 2)
+        span = move_span(length / self.geometry.cell_m, turns)
+        return Plan(
+            length,
+            taken_ns + round(guidance.delay * self.cell_time_s * 1e9),
+            round(span * self.cell_time_s * 1e9),
+            self.accel_share,
+        )
 
     @property
     def reach(self) -> float:
@@ -178,15 +236,18 @@ class ControlCore:
         clock: Callable[[], int],
         timing: StepTiming = StepTiming(),
         motion: MotionRules = MotionRules(),
+        journal: CoreJournal | None = None,
     ) -> None:
         self.fleet = fleet
         self.policy_step = policy_step
         self.timing = timing
         self.motion = motion
         self._clock = clock
+        self._log = None if journal is None else journal.log
         self._rounds = 0  # re-centring rounds since the last step
         self._before: dict[int, Seen] = {}  # each car's sighting before the last one
         self._targets: dict[int, tuple[float, float]] = {}  # where the last commands drive to
+        self._plans: dict[int, Plan] = {}  # the moves of the last commands the cars took
         self.static: dict[str, frozenset[Cell]] | None = None  # the last scene's cell markers
         self.uncertain: set[int] = set()  # cars the last scene could not place in a cell
         self.not_before_ns = 0  # frames captured earlier are stale: not analysed
@@ -195,6 +256,8 @@ class ControlCore:
         self._last_decision_ns = 0  # how long the last decision took (state to commands)
         self._finished_at: int | None = None  # when every car's move was seen finished
         self._stepped_at = clock()  # when the last step was dispatched
+        if self._log is not None:
+            self._log("start", self._stepped_at, timing)
 
     # ------------------------------------------------------------------ frames in
     def wants(self, t_capture_ns: int) -> bool:
@@ -205,6 +268,9 @@ class ControlCore:
         """Fold one frame's scene and the link's ready cars at ``now`` into the fleet. A car
         seen too near a cell border to name its cell (`uncertain`) keeps its last cell and is
         held by the next step; one never placed yet is not taken into the fleet until it is."""
+        if self._log is not None:
+            ready = tuple(ready)
+            self._log("see", now, ready, scene)
         self.static = scene.cells
         fleet, seen = self.fleet, []
         self.uncertain = set()
@@ -272,8 +338,12 @@ class ControlCore:
         tells whether a car ended its move."""
         fleet = self.fleet
         if self.stopped or not fleet.slot:
+            if self._log is not None:
+                self._log("due", now, ())
             return None
         moving = fleet.moving(finished)
+        if self._log is not None:
+            self._log("due", now, tuple(moving))
         if not moving and self._finished_at is None:
             self._finished_at = now
         finished_at = self._finished_at
@@ -382,6 +452,8 @@ class ControlCore:
         moving = self.fleet.moving(finished)
         if not moving or self.stopped:
             return {}
+        if self._log is not None:
+            self._log("guard", tuple(moving))
         t = scene.t_capture_ns
         fleet = self.fleet
         now = {c: (x, y) for c, (x, y, _, at) in fleet.pose.items() if at == t and c in fleet.slot}
@@ -389,10 +461,12 @@ class ControlCore:
             c: (x, y, (t - at) / 1e9) for c, (x, y, _, at) in self._before.items() if c in moving
         }
         targets = {c: self._targets[c] for c in moving if c in self._targets and c in now}
+        plans = {c: self._plans[c] for c in targets if c in self._plans}
         motion = self.motion
-        stops = closing_in(now, before, targets, motion.guard_horizon_s, motion.reach)
+        stops = closing_in(now, before, targets, motion.guard_horizon_s, motion.reach, plans, t)
         for car in stops:
             del self._targets[car]
+            self._plans.pop(car, None)
         commands = dict.fromkeys(sorted(stops), STOP)
         fleet.command.update(commands)
         return commands
@@ -401,7 +475,10 @@ class ControlCore:
         """What became of a re-centring round's commands; its telemetry record. A round in
         which no car sent to a centre got its command does not count against the rounds: it
         did not try (the link drops a car that stays silent, so this cannot go on for ever)."""
+        if self._log is not None:
+            self._log("recentred", recentring, report)
         self.fleet.command.update(recentring.commands)
+        self._took(recentring.guidance, report)
         sent = [report.cars[c] for c in recentring.cars if c in recentring.guidance]
         if sent and not any(r.acked for r in sent):
             self._rounds -= 1
@@ -422,6 +499,17 @@ class ControlCore:
             "outcomes": {str(c): _outcome(r) for c, r in report.cars.items()},
         }
 
+    def _took(self, guidance: Mapping[int, Guidance], report: DispatchReport) -> None:
+        """The moves the guard predicts: each car that took its command drives its plan from
+        when it took it (its receive time, else when its ACK came)."""
+        self._plans = {}
+        for car, g in guidance.items():
+            r = report.cars.get(car)
+            taken = None if r is None or not r.acked else r.car_received_ns or r.acked_ns
+            plan = None if taken is None else self.motion.plan(g, taken)
+            if plan is not None:
+                self._plans[car] = plan
+
     # ------------------------------------------------------------------ steps
     def commands_for(self, state: FleetState, now: int) -> tuple[Decision, dict[int, int], int]:
         """The step's decision (with each command's guidance: the car's measured pose and its
@@ -435,7 +523,7 @@ class ControlCore:
             for car in decision.cars
             if car not in state.moving
         }
-        delays, waits = corner_delays(moves)
+        delays, waits = corner_delays(moves, straight=self.motion.follow_delay)
         leaving = {start: car for car, (start, end) in moves.items() if start != end}
         after = {
             car: leaving[end]
@@ -454,6 +542,8 @@ class ControlCore:
         self.fleet.stepped()
         decided_ns = self._clock()
         self._last_decision_ns = decided_ns - now
+        if self._log is not None:
+            self._log("decide", now, decided_ns, state, decision)
         return decision, commands, decided_ns
 
     def dispatched(
@@ -468,9 +558,13 @@ class ControlCore:
         counts, and per car (keyed by its id as a string) its cell, heading, command, outcome,
         sends, with the policy's groups (car ids, leader first) and the episode's score so far.
         The live view, the annotated video and the flight recorder read this same record."""
+        if self._log is not None:
+            self._log("dispatched", state_ns, report)
         decided_ns = report.decision_ns
         rehearsed, self._rehearsed = self._rehearsed, False
         self.fleet.command.update(commands)
+        # a car still in its move was sent its destination again: its move is not that plan
+        self._took({c: g for c, g in decision.guidance.items() if c not in state.moving}, report)
         cars = report.cars.values()
         received = [r.car_received_ns for r in cars if r.acked]
         late = _late_executions(report)
@@ -539,28 +633,38 @@ class ControlCore:
     def wait_for_moves(self, now: int) -> None:
         """The step is done (dispatched, the pause after it taken): the next one waits for the
         moves it started."""
+        if self._log is not None:
+            self._log("wait_for_moves", now)
         self._finished_at = None
         self._stepped_at = now
 
     # ------------------------------------------------------------------ episodes, stop
     def new_episode(self, now: int) -> None:
         """A new episode: no car, empty memories, frames captured before ``now`` are stale."""
+        if self._log is not None:
+            self._log("new_episode", now)
         self.policy_step.reset()
         self._rehearsed = False
         self._rounds = 0
         self._targets = {}
+        self._plans = {}
         self.fleet.reset()
         self.not_before_ns = now
 
     def credit_last_step(self, scene: Scene) -> np.ndarray | None:
         """The rewards of the step that just ended, credited without deciding again (the end
         of an episode), from a frame that shows every car; None if this one does not."""
-        if not self.all_seen(scene):
-            return None
-        slots = dict(self.fleet.slot)
-        cells = {c: self.fleet.cell[c] for c in slots}
-        return self.policy_step.credit_last_step(slots, cells, scene.cells)
+        rewards = None
+        if self.all_seen(scene):
+            slots = dict(self.fleet.slot)
+            cells = {c: self.fleet.cell[c] for c in slots}
+            rewards = self.policy_step.credit_last_step(slots, cells, scene.cells)
+        if self._log is not None:
+            self._log("credit_last_step", rewards)
+        return rewards
 
     def emergency_stop(self) -> None:
         """No step is decided any more (the caller stops the cars)."""
+        if self._log is not None:
+            self._log("emergency_stop")
         self.stopped = True

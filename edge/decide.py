@@ -6,7 +6,8 @@ The masking is the training code itself: the static layout comes from the cell m
 observation exactly as the arena does, with its last action and last reward
 (:func:`udan.envs.arena.task_rewards` on the cells the camera sees), so a policy gets the same
 numbers on cars as in simulation. Grouping and inference are :class:`udan.export.runtime.OnnxPolicy`
-(numpy grouping, one onnxruntime graph), keyed by the fleet's slots.
+(grouping from :mod:`udan.envs.grouping`, one onnxruntime graph), keyed by the fleet's slots.
+The observations are written straight into the graph's bound input buffer.
 """
 
 from __future__ import annotations
@@ -14,17 +15,20 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from itertools import chain
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from udan import _kernels
 from udan.edge.fleet import FleetState
 from udan.edge.protocol import Guidance
 from udan.edge.safety import Filtered, filter_moves
 from udan.envs.arena import layout_bits, scene_codes, task_rewards
 from udan.envs.observe import ObsSpec, observe
 from udan.envs.rules import ACTION_DELTAS, OBSTACLE, WAIT, WALL, WATER
-from udan.export.runtime import OnnxPolicy
+
+if TYPE_CHECKING:  # the caller builds the policy; deciding needs only its methods
+    from udan.export.runtime import OnnxPolicy
 
 _KIND_CODES = {"obstacle": OBSTACLE, "wall": WALL, "water": WATER}
 TASKS = ("find_water", "surround")
@@ -86,6 +90,7 @@ class DecisionStep:
         self.owner = np.zeros(0, np.int64)
         self._fleet_key: dict[int, int] | None = None  # the slots _fleet_arrays are for
         self._fleet_arrays: tuple[np.ndarray, ...] | None = None
+        self._cars: tuple[int, ...] = ()  # the car ids of _fleet_arrays, for each Decision
         self.reset()
 
     def reset(self) -> None:
@@ -103,7 +108,7 @@ class DecisionStep:
         self._banked: dict[int, float] = {}
         self._layout_key: tuple[frozenset[tuple[int, int]], ...] | None = None
         self._last: tuple | None = None  # the last step's inputs, for rehearse
-        self._owned_key: dict[int, int] | None = None  # the slots last credited: cars own them
+        self._owned_key: dict[int, int] | None = None  # _fleet_key last credited: cars own them
 
     @property
     def returns(self) -> dict[int, float]:
@@ -144,13 +149,14 @@ class DecisionStep:
         if not slots:
             return Decision((), *(np.zeros(0, np.int64),) * 2, np.zeros(0, np.float32), 0, 0, {})
         layout, padded = self.layout(static)
-        steady = not fresh and slots == self._owned_key  # every car owns its slot already
         cars, idx, pos, present, target = self._scene(slots, cells_of, static)
+        # the slots last credited, kept since (no fresh car): every car owns its slot already
+        steady = not fresh and self._owned_key is self._fleet_key
         fresh_mask = np.zeros(len(self.owner), bool)
         if fresh:
             fresh_mask[[slots[c] for c in fresh if c in slots]] = True
         rewards = self._credit(cars, idx, fresh_mask, layout, pos, present, target, steady)
-        obs = self._observe(padded, pos, present, target)
+        obs = self._observe(padded, pos, present, target, self.policy.observations(len(self.owner)))
         t1 = time.perf_counter_ns()
         actions = self.policy.act(obs, present[0], pos[0], fresh_mask)[idx]
         t2 = time.perf_counter_ns()
@@ -159,11 +165,11 @@ class DecisionStep:
             layout, cars, idx, pos[0, idx], actions, blockers, state.moving
         )
         self.t += 1
-        self._last = dict(slots), dict(cells_of), dict(static), blockers
+        self._last = layout, padded, pos, present, idx, target, blockers
         t3 = time.perf_counter_ns()
         return Decision(
-            cars=tuple(cars.tolist()),
-            actions=np.asarray(actions, np.int64),
+            cars=self._cars,
+            actions=actions,
             commands=filtered.commands,
             rewards=rewards,
             blocked=int(np.count_nonzero(filtered.blocked)),
@@ -190,17 +196,17 @@ class DecisionStep:
         decision grows the per-slot state and binds the policy anew, which a rehearsal must
         not do)."""
         if slots is not None and cells_of is not None and static is not None:
+            if not slots or max(slots.values()) >= len(self.owner):
+                return False
+            layout, padded = self.layout(static)
+            _, idx, pos, present, target = self._scene(slots, cells_of, static)
             blockers = _blockers(static)
         elif self._last is not None:
-            slots, cells_of, static, blockers = self._last
+            layout, padded, pos, present, idx, target, blockers = self._last
         else:
             return False
-        if not slots or max(slots.values()) >= len(self.owner):
-            return False
-        layout, padded = self.layout(static)
-        _, idx, pos, present, target = self._scene(slots, cells_of, static)
         task_rewards(self.task, layout[None], pos, present, target, np.array([self.t]))
-        obs = self._observe(padded, pos, present, target)
+        obs = self._observe(padded, pos, present, target, self.policy.observations(len(self.owner)))
         if not self.policy.rehearse(obs, present[0], pos[0]):
             return False
         filter_moves(layout, pos[0, idx], self.last_action[idx], others=blockers)
@@ -229,13 +235,11 @@ class DecisionStep:
         static: Mapping[str, frozenset[tuple[int, int]]],
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Car ids in slot order, their slots, positions (1, S, 2), presence (1, S), surround
-        target (1, 2); the per-slot state grows to S slots. Read from the mappings with
-        ``fromiter`` (a Python loop per car costs ~1 ms at 1,000 cars)."""
+        target (1, 2); the per-slot state grows to S slots. The cells are read from the mapping
+        in one loop in C (a Python loop per car costs ~1 ms at 1,000 cars)."""
         cars, idx, present = self._fleet(slots)
-        n = len(cars)
         pos = np.zeros((1, len(self.owner), 2), np.int64)
-        cells = chain.from_iterable(map(cells_of.__getitem__, cars.tolist()))
-        pos[0, idx] = np.fromiter(cells, np.int64, 2 * n).reshape(n, 2)
+        _kernels.gather_cells(cells_of, self._cars, idx, pos[0])
         target = None
         if self.task == "surround":
             target_cells = sorted(static.get("target", ()))
@@ -265,15 +269,22 @@ class DecisionStep:
         for array in (cars, idx, present):
             array.flags.writeable = False
         self._fleet_key, self._fleet_arrays = dict(slots), (cars, idx, present)
+        self._cars = tuple(cars.tolist())
         return self._fleet_arrays
 
     def _observe(
-        self, padded: np.ndarray, pos: np.ndarray, present: np.ndarray, target: np.ndarray | None
+        self,
+        padded: np.ndarray,
+        pos: np.ndarray,
+        present: np.ndarray,
+        target: np.ndarray | None,
+        out: np.ndarray,
     ) -> np.ndarray:
-        """Every slot's observation (S, D) of the scene, with its last action and reward."""
+        """Every slot's observation (S, D) of the scene, with its last action and reward,
+        written into ``out`` (the policy's bound buffer: the graph reads it from there)."""
         codes = scene_codes(padded, pos, present, self.spec.view, target)
         last_action, last_reward = self.last_action[None], self.last_reward[None]
-        return observe(self.spec, codes, pos, last_action, last_reward, present)[0]
+        return observe(self.spec, codes, pos, last_action, last_reward, present, out[None])[0]
 
     def _credit(
         self,

@@ -38,8 +38,11 @@ ZOOM_BELOW_PX = 3.0
 corners land within a module. Measured on rendered frames (tilt 40-60 degrees, noise and
 blur): 2-2.7 pixels per module decode in 94-100 % of frames at ZOOM, 80-96 % at full
 resolution; 3 and more in 100 % at either."""
-SUBPIX_WINDOW = (3, 3)
-"""cornerSubPix half-window: inside one module of the smallest calibration marker."""
+SUBPIX_WINDOW = 3
+"""cornerSubPix half-window at the search resolution of a 1200-line frame (and finer): inside
+one module of the smallest calibration marker. Coarser search resolutions (frames of more
+lines) leave the corners proportionally further off, and their markers' modules are
+proportionally larger: the window grows with the downscale (:meth:`MarkerDetector.refine`)."""
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 CELL_PIXELS = 8
 """Pixels per module when a candidate is unwarped to read its bits: more than OpenCV's 4 makes
@@ -202,14 +205,14 @@ class MarkerDetector:
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
         return ids.ravel().tolist(), quads, rejected
 
-    @staticmethod
-    def refine(img: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    def refine(self, img: np.ndarray, corners: np.ndarray) -> np.ndarray:
         """`corners` (4, 2) of a large marker refined at full resolution (cornerSubPix): the
         calibration markers' corners fix the camera model, and their misfit measures the lens
-        model's (contour refinement at the search resolution leaves corners about a pixel
-        inside the marker, which reads as a misfit of several millimetres)."""
+        model's (contour refinement at the search resolution leaves corners about a search
+        pixel inside the marker, which reads as a misfit of several millimetres)."""
+        half = max(SUBPIX_WINDOW, round(SUBPIX_WINDOW * self.s / 2))
         pts = corners.astype(np.float32).reshape(-1, 1, 2)
-        cv2.cornerSubPix(img, pts, SUBPIX_WINDOW, (-1, -1), _SUBPIX_CRITERIA)
+        cv2.cornerSubPix(img, pts, (half, half), (-1, -1), _SUBPIX_CRITERIA)
         return pts.reshape(4, 2).astype(np.float64)
 
     def box(self, cx: float, cy: float, half: float) -> tuple[int, int, int, int]:

@@ -106,12 +106,15 @@ class EpisodePlayer:
 
     async def _await_fleet(self, shell: EdgeShell, cars: set[int]) -> bool:
         """Frames until exactly the episode's cars are in the fleet (joined, seen) and the
-        vision has swept the whole image since the layout changed (its obstacle and water
-        markers are read by the sweep, a tile per frame)."""
+        vision has swept the whole image, calibrated, since the layout changed (its obstacle
+        and water markers are read by the sweep, a tile per frame, and a tile swept before the
+        camera model was fitted places its markers in no cell: the first episode's first step
+        once drove a car into an obstacle it had not placed yet)."""
         deadline = time.monotonic() + self.plan.join_timeout_s
         frames = 0
         while not shell.stop.is_set() and time.monotonic() < deadline:
-            frames += await shell.next_scene() is not None
+            scene = await shell.next_scene()
+            frames += scene is not None and scene.calibrated
             if set(shell.core.fleet.slot) == cars and frames > shell.perception.sweep_frames:
                 return True
         return False

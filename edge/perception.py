@@ -39,6 +39,7 @@ import subprocess
 import sys
 import threading
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -47,8 +48,11 @@ from typing import Any
 from udan.edge.calibration import VisionError
 from udan.edge.camera import (
     CameraError,
+    CameraMode,
+    CameraSource,
     Frame,
     FrameGrabber,
+    FrameWriter,
     open_camera,
     yield_process_to_dispatch,
     yield_to_dispatch,
@@ -130,6 +134,118 @@ class VisionSettings:
         )
 
 
+REMEMBERED_BYTES = 40 << 20
+"""Analysed frames the perception remembers (by reference, no copy) for the flight recorder,
+in bytes: 16 frames of 1920x1200 (0.4 s at 40 FPS), 4 of 4K; a decision's frame is asked for
+within a few tens of milliseconds."""
+REMEMBERED_MIN, REMEMBERED_MAX = 4, 16
+DECIDED_SLOTS = 8
+"""Decided frames the shared memory holds for the recorder (1.6 s of 5 decisions a second)."""
+PREVIEW_SLOTS = 4
+
+
+@dataclass(frozen=True)
+class RingSpec:
+    """Where the perception puts frames for the flight recorder, and how many besides the
+    decided ones (a second)."""
+
+    name: str
+    rate: float = 0.0
+
+    @property
+    def decided(self) -> str:
+        """Shared memory of the frames decisions used."""
+        return f"{self.name}-decided"
+
+    @property
+    def previews(self) -> str:
+        """Shared memory of the other frames, ``rate`` a second."""
+        return f"{self.name}-preview"
+
+
+class FrameRing:
+    """The analysed frames, for the flight recorder (:mod:`udan.edge.recorder`). The last few
+    are remembered by reference, so this costs no copy: a frame of its own nothing writes to
+    any more, a lent one (the virtual camera's slot, :attr:`Frame.lease`) until the camera
+    reuses the slot. The frame a decision used is copied into the shared memory
+    :attr:`RingSpec.decided` when the edge says so (:meth:`keep`, a few times a second), and one
+    frame every ``1 / rate`` s into :attr:`RingSpec.previews` as it is analysed: a few copies a
+    second, not one a frame; a lent image is first copied out of its slot and kept only if the
+    slot still held it after the copy (:meth:`Frame.owned`), so the camera can never overwrite
+    a recorded frame. Made at the first frame, at that frame's size (a frame of another size is
+    not kept); removed on close. :meth:`keep` comes from the perception process's control
+    thread, :meth:`analysed` from its main thread: a lock keeps them apart."""
+
+    def __init__(self, spec: RingSpec) -> None:
+        self.spec = spec
+        self.missed = 0
+        """Frames asked for that were no longer remembered (or whose lent slot was reused)."""
+        self._lock = threading.Lock()
+        self._frames: deque[Frame] = deque(maxlen=REMEMBERED_MIN)
+        self._decided: FrameWriter | None = None
+        self._previews: FrameWriter | None = None
+        self._kept = 0
+        self._previewed = 0
+        self._preview_due_ns = 0
+        self._period_ns = round(1e9 / spec.rate) if spec.rate > 0 else 0
+
+    def analysed(self, frame: Frame) -> None:
+        """A frame the vision is done with: remember it; copy it for the previews when due."""
+        image = frame.image
+        with self._lock:
+            if self._decided is None:
+                height, width = image.shape
+                remembered = REMEMBERED_BYTES // max(1, width * height)
+                self._frames = deque(maxlen=max(REMEMBERED_MIN, min(REMEMBERED_MAX, remembered)))
+                self._decided = FrameWriter(self.spec.decided, width, height, DECIDED_SLOTS)
+                self._previews = FrameWriter(self.spec.previews, width, height, PREVIEW_SLOTS)
+            layout = self._decided.layout
+            if image.shape != (layout.height, layout.width):
+                return
+            self._frames.append(frame)
+            due = self._period_ns and frame.t_capture_ns >= self._preview_due_ns
+        owned = frame.owned() if due else None
+        if owned is not None:
+            self._preview_due_ns = max(self._preview_due_ns + self._period_ns, frame.t_capture_ns)
+            self._previewed += 1
+            self._previews.publish(self._previewed, frame.t_capture_ns, owned.image)
+
+    def keep(self, t_capture_ns: int) -> bool:
+        """Copy the frame captured at ``t_capture_ns`` (a decision used it) for the recorder;
+        False if it is no longer remembered."""
+        with self._lock:
+            frame = next((f for f in self._frames if f.t_capture_ns == t_capture_ns), None)
+        owned = None if frame is None else frame.owned()
+        if owned is None or self._decided is None:
+            self.missed += 1
+            return False
+        self._kept += 1
+        self._decided.publish(self._kept, t_capture_ns, owned.image)
+        return True
+
+    def close(self) -> None:
+        for writer in (self._decided, self._previews):
+            if writer is not None:
+                writer.close()
+
+
+def ring_counts(ring: FrameRing | None) -> dict[str, int]:
+    """The flight recorder's frames the perception no longer remembered when asked."""
+    return {} if ring is None else {"not_remembered": ring.missed}
+
+
+def camera_facts(source: CameraSource) -> dict[str, Any]:
+    """What the edge reports of an opened camera: its URL, the options asked, the granted
+    mode and how it differs from the asked one."""
+    mode: CameraMode | None = source.mode
+    return {
+        "url": source.url,
+        "asked": source.options.given,
+        "mode": None if mode is None else asdict(mode),
+        "warnings": list(source.warnings),
+    }
+
+
 class Perception(ABC):
     """Frames to scenes beside the event loop; see the module docstring."""
 
@@ -166,6 +282,27 @@ class Perception(ABC):
     def ended(self) -> bool:
         """The stream has ended and every scene of it has been taken."""
 
+    @property
+    @abstractmethod
+    def counters(self) -> dict[str, int]:
+        """Frames captured and dropped, what the camera source skipped (stale frames,
+        incomplete GenICam buffers), and decided frames the flight recorder asked for too late
+        (``not_remembered``)."""
+
+    @property
+    @abstractmethod
+    def camera_info(self) -> dict[str, Any]:
+        """The camera as opened (:func:`camera_facts`); empty until :meth:`wait_ready`."""
+
+    @abstractmethod
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        """What happened to the camera since the last call ("camera_lost", "camera_back")."""
+
+    @abstractmethod
+    def keep_frame(self, t_capture_ns: int) -> None:
+        """A decision used the frame captured at ``t_capture_ns``: copy it for the flight
+        recorder (:class:`FrameRing`; nothing without one). Never waits."""
+
     @abstractmethod
     def wait_ready(self) -> None:
         """Until the camera is open and the vision built; raises their errors
@@ -197,10 +334,15 @@ class ThreadPerception(Perception):
     executor, both in the edge process and under its interpreter lock."""
 
     def __init__(
-        self, grabber: FrameGrabber, vision: Vision, overlay: OverlaySettings = NO_OVERLAY
+        self,
+        grabber: FrameGrabber,
+        vision: Vision,
+        ring: FrameRing | None = None,
+        overlay: OverlaySettings = NO_OVERLAY,
     ) -> None:
         self.grabber = grabber
         self.vision = vision
+        self.ring = ring
         self.overlay = overlay
         self._annotator = Annotator(overlay, vision) if overlay.wanted else None
         self.sweep_frames = vision.sweep_frames
@@ -219,6 +361,17 @@ class ThreadPerception(Perception):
         return self.grabber.dropped
 
     @property
+    def counters(self) -> dict[str, int]:
+        return {**self.grabber.counters(), **ring_counts(self.ring)}
+
+    @property
+    def camera_info(self) -> dict[str, Any]:
+        return camera_facts(self.grabber.source)
+
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        return self.grabber.take_news()
+
+    @property
     def ended(self) -> bool:
         return self._analysing is None and self.grabber.ended
 
@@ -234,7 +387,13 @@ class ThreadPerception(Perception):
         scene = self.vision.process(frame)
         if self._annotator is not None:
             self._annotator.frame(frame, scene)
+        if self.ring is not None:
+            self.ring.analysed(frame)
         return scene
+
+    def keep_frame(self, t_capture_ns: int) -> None:
+        if self.ring is not None:  # in the vision's thread: the loop touches no pixel
+            self._pool.submit(self.ring.keep, t_capture_ns)
 
     def wait_ready(self) -> None:
         """Nothing to wait for: the camera was opened and the vision built by the caller."""
@@ -259,6 +418,8 @@ class ThreadPerception(Perception):
     def close(self) -> None:
         self.grabber.close()
         self._pool.shutdown(wait=True)
+        if self.ring is not None:
+            self.ring.close()
         if self._annotator is not None:
             self.video = self._annotator.close()
 
@@ -271,16 +432,19 @@ class ProcessPerception(Perception):
         self,
         camera: str,
         settings: VisionSettings = VisionSettings(),
+        ring: RingSpec | None = None,
         overlay: OverlaySettings = NO_OVERLAY,
     ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
-        caller goes on; :meth:`wait_ready` waits for that)."""
+        caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
+        it analysed there for the flight recorder (:class:`FrameRing`)."""
         self.camera = camera
         self.overlay = overlay
         self.sweep_frames = 0
+        self._camera_info: dict[str, Any] = {}
+        self._counts: dict[str, int] = {"captured": 0, "dropped": 0}
+        self._news: list[tuple[str, dict[str, Any]]] = []
         self._thumbnail: bytes | None = None
-        self._captured = 0
-        self._dropped_there = 0  # frames the perception process's grabber overwrote
         self._superseded = 0  # scenes superseded here before the loop took them
         self._scene: Scene | None = None
         self._taken: FrameTaken | None = None
@@ -290,7 +454,10 @@ class ProcessPerception(Perception):
         self._reading: asyncio.AbstractEventLoop | None = None
         self._not_before_ns = 0
         self._buffer = bytearray(MESSAGE_BYTES)
+        self._ring = ring
         args = ["--camera", camera, "--vision", settings.to_json()]
+        if ring is not None:
+            args += ["--ring", ring.name, "--ring-rate", str(ring.rate)]
         if overlay.wanted:
             args += ["--overlay", overlay.to_json()]
         self._sock, self._proc = spawn("udan.edge.perception", args)
@@ -315,7 +482,7 @@ class ProcessPerception(Perception):
             self._stream_ended = True
             raise _ERRORS.get(body[0], PerceptionError)(body[1])
         self._sock.setblocking(False)
-        self.sweep_frames = int(body[0])
+        self.sweep_frames, self._camera_info = int(body[0]), body[1]
 
     @property
     def pid(self) -> int:
@@ -323,11 +490,27 @@ class ProcessPerception(Perception):
 
     @property
     def captured(self) -> int:
-        return self._captured
+        return self._counts["captured"]
 
     @property
     def dropped(self) -> int:
-        return self._dropped_there + self._superseded
+        return self._counts["dropped"] + self._superseded
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {**self._counts, "dropped": self.dropped}
+
+    @property
+    def camera_info(self) -> dict[str, Any]:
+        return self._camera_info
+
+    def take_news(self) -> list[tuple[str, dict[str, Any]]]:
+        news, self._news = self._news, []
+        return news
+
+    def keep_frame(self, t_capture_ns: int) -> None:
+        if self._ring is not None and not self._stream_ended:
+            self._send(("keep", t_capture_ns))
 
     @property
     def ended(self) -> bool:
@@ -390,9 +573,11 @@ class ProcessPerception(Perception):
         elif kind == "error":
             self._end(_ERRORS.get(body[0], PerceptionError)(body[1]))
             return
+        elif kind == "news":
+            self._news.append((body[0], body[1]))
         elif kind == "end":
             self._end(None)
-        self._captured, self._dropped_there = body[-2], body[-1]
+        self._counts = body[-1]
 
     def _end(self, error: Exception | None) -> None:
         self._stream_ended = True
@@ -442,8 +627,8 @@ class ProcessPerception(Perception):
             with contextlib.suppress(OSError, EOFError, pickle.UnpicklingError):
                 while data := self._sock.recv(MESSAGE_BYTES):
                     kind, *body = pickle.loads(data)
-                    if kind in ("taken", "scene", "thumbnail", "end"):
-                        self._captured, self._dropped_there = body[-2], body[-1]
+                    if kind in ("taken", "scene", "news", "thumbnail", "end"):
+                        self._counts = body[-1]
                     if kind == "video":
                         self.video = body[0]
             self._stream_ended = True
@@ -470,11 +655,13 @@ class _Server:
         sock: socket.socket,
         grabber: FrameGrabber,
         vision: Vision,
+        ring: FrameRing | None = None,
         annotator: Annotator | None = None,
     ) -> None:
         self.sock = sock
         self.grabber = grabber
         self.vision = vision
+        self.ring = ring
         self.annotator = annotator
         self._thumbnail: bytes | None = None  # the last one sent
         self.not_before_ns = 0
@@ -489,9 +676,10 @@ class _Server:
     def send(self, *message: Any) -> bool:
         """A message with the counts so far, never waiting: a message the socket has no room
         for is dropped (a scene counted). Returns whether it was sent."""
-        counts = (self.grabber.captured, self.grabber.dropped + self.unsent + self.overwritten)
+        counts = {**self.grabber.counters(), **ring_counts(self.ring)}
+        counts["dropped"] += self.unsent + self.overwritten
         try:
-            self.sock.send(pickle.dumps((*message, *counts)), socket.MSG_DONTWAIT)
+            self.sock.send(pickle.dumps((*message, counts)), socket.MSG_DONTWAIT)
         except BlockingIOError:
             self.unsent += message[0] == "scene"
             return False
@@ -507,6 +695,8 @@ class _Server:
         kind, *body = pickle.loads(data) if data else ("stop",)
         if kind == "skip_before":
             self.not_before_ns = body[0]
+        elif kind == "keep" and self.ring is not None:
+            self.ring.keep(body[0])
         elif kind == "step" and self.annotator is not None:
             self.annotator.step(body[0])
         elif kind == "stop":
@@ -526,6 +716,8 @@ class _Server:
         threading.Thread(target=self._listen, name="control", daemon=True).start()
         while not self.stopping.is_set():
             frame = self.grabber.wait_frame(self.POLL_S)
+            for kind, fields in self.grabber.take_news():
+                self.send("news", kind, fields)
             if frame is None and self.grabber.ended:
                 break
             if frame is None or frame.t_capture_ns < self.not_before_ns:
@@ -538,6 +730,8 @@ class _Server:
             self.send_scene(scene)
             if self.annotator is not None:
                 self._annotate(frame, scene)
+            if self.ring is not None:
+                self.ring.analysed(frame)
 
     def _annotate(self, frame: Frame, scene: Scene) -> None:
         """The frame to the annotator; its newest thumbnail to the edge if there is a new one
@@ -555,12 +749,17 @@ def _error_kind(err: Exception) -> str:
 
 
 def serve(
-    fd: int, camera: str, settings: VisionSettings, overlay: OverlaySettings = NO_OVERLAY
+    fd: int,
+    camera: str,
+    settings: VisionSettings,
+    ring: RingSpec | None = None,
+    overlay: OverlaySettings = NO_OVERLAY,
 ) -> int:
-    """The perception process: open ``camera`` and build the vision, say "ready" (or the error,
-    one line), wait for "start", then send scenes until told to stop or the edge goes away;
-    draw the steps onto the frames when ``overlay`` asks (the video is finished on the way
-    out)."""
+    """The perception process: open ``camera`` and build the vision, say "ready" with the
+    camera's granted mode (or the error, one line), wait for "start", then send scenes until
+    told to stop or the edge goes away; with ``ring``, keep frames for the flight recorder
+    (:class:`FrameRing`); draw the steps onto the frames when ``overlay`` asks (the video is
+    finished on the way out)."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -571,11 +770,12 @@ def serve(
         return 2
     source.lend = True  # the server checks each frame's image after its analysis
     grabber = FrameGrabber(source)
+    frames = None if ring is None else FrameRing(ring)
     annotator = Annotator(overlay, vision) if overlay.wanted else None
-    server = _Server(sock, grabber, vision, annotator)
+    server = _Server(sock, grabber, vision, frames, annotator)
     try:
         freeze_garbage()
-        sock.send(pickle.dumps(("ready", vision.sweep_frames)))
+        sock.send(pickle.dumps(("ready", vision.sweep_frames, camera_facts(source))))
         while (data := sock.recv(MESSAGE_BYTES)) and pickle.loads(data)[0] != "start":
             server.control(data)
             if server.stopping.is_set():  # stopped before the run began
@@ -597,6 +797,8 @@ def serve(
         return 0
     finally:
         grabber.close()
+        if frames is not None:
+            frames.close()
         if annotator is not None:
             annotator.close()
     return 0
@@ -609,9 +811,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--camera", required=True)
     parser.add_argument("--vision", type=VisionSettings.from_json, default=VisionSettings())
+    parser.add_argument("--ring", help="keep frames for the flight recorder under this name")
+    parser.add_argument("--ring-rate", type=float, default=0.0)
     parser.add_argument("--overlay", type=OverlaySettings.from_json, default=NO_OVERLAY)
     args = parser.parse_args(argv)
-    return serve(args.fd, args.camera, args.vision, args.overlay)
+    ring = None if args.ring is None else RingSpec(args.ring, args.ring_rate)
+    return serve(args.fd, args.camera, args.vision, ring, args.overlay)
 
 
 if __name__ == "__main__":

@@ -180,7 +180,8 @@ class Guidance:
     captured_ns: int = 0
     delay: float = 0.0
     """Start the move this share of a cell time after accepting it (a car that enters a cell
-    another car leaves sideways waits for that car's body to clear its path)."""
+    another car leaves sideways waits for that car's body to clear its path; one following
+    another straight starts a little after it)."""
 
 
 def _mrad(heading: float) -> int:

@@ -24,7 +24,7 @@ import signal
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from udan.edge.core import ControlCore, Recentring, StepTiming
 from udan.edge.fleet import FleetState
@@ -62,6 +62,17 @@ class LoopConfig:
         return StepTiming(int(self.step_timeout_s * 1e9), int(self.unseen_grace_s * 1e9))
 
 
+#: With no step for this many kept records (a stalled camera, an empty arena: ~3 s of frames),
+#: the flight recorder sends them anyway.
+FLUSH_PENDING = 400
+
+
+class Flushable(Protocol):
+    """What keeps records inside a step and sends them between steps (the flight recorder)."""
+
+    def flush(self, more_than: int = 0) -> None: ...
+
+
 class EdgeShell:
     """Wires perception, link and telemetry around a :class:`ControlCore`; ``run`` is the whole
     job."""
@@ -74,6 +85,7 @@ class EdgeShell:
         telemetry: Telemetry,
         config: LoopConfig = LoopConfig(),
         live: LiveView | None = None,
+        recorder: Flushable | None = None,
     ) -> None:
         self.perception = perception
         self.link = link
@@ -81,6 +93,7 @@ class EdgeShell:
         self.telemetry = telemetry
         self.config = config
         self.live = live
+        self.recorder = recorder
         self.stop = asyncio.Event()
         self._captured_ns: int | None = None  # capture time of the newest scene folded in
         self._collections = 0
@@ -118,12 +131,15 @@ class EdgeShell:
                 loop.remove_signal_handler(sig)
             await asyncio.sleep(ESTOP_GRACE_S)  # the link repeats the estop in this time
             self.perception.close()
+            self._camera_news()
+            if self.recorder is not None:
+                self.recorder.flush()
             self._publish(final=True)  # the page shows how the run ended
         report = self.telemetry.report()
         report["final"] = self.telemetry.final_line()
         report["link"] = self.link.counters()
         perception = self.perception
-        report["camera"] = {"captured": perception.captured, "dropped": perception.dropped}
+        report["camera"] = {**perception.counters, **perception.camera_info}
         if perception.video is not None:
             report["camera"]["video"] = perception.video
         report["gc"] = {
@@ -152,7 +168,19 @@ class EdgeShell:
             return event
         return None
 
+    def _camera_news(self) -> None:
+        """The camera's news into telemetry: lost (with the reason; no scene comes, so no step
+        is decided and the cars stop after their move) and back."""
+        for kind, fields in self.perception.take_news():
+            self.telemetry.event(kind, **fields)
+
     async def _wait_event(self) -> FrameTaken | Scene | None:
+        """The next news from the perception. Before waiting (the loop is idle until then),
+        the camera's news go to telemetry; the flight recorder sends what it kept only if no
+        step has sent it for a long while (it sends after each step)."""
+        self._camera_news()
+        if self.recorder is not None:
+            self.recorder.flush(FLUSH_PENDING)  # after each step, or when they pile up
         perception = self.perception
         stopping = asyncio.ensure_future(self.stop.wait())
         waiting = asyncio.ensure_future(perception.next_event(self.config.stall_s))
@@ -184,7 +212,14 @@ class EdgeShell:
         uncertain = sum(s.inside and s.uncertain for s in scene.cars.values())
         dropped = self.perception.dropped
         self.telemetry.frame(
-            scene.frame_index, scene.t_capture_ns, now, seen, dropped, uncertain, scene.vision_ns
+            scene.frame_index,
+            scene.t_capture_ns,
+            now,
+            seen,
+            dropped,
+            uncertain,
+            scene.vision_ns,
+            scene.t_arrival_ns,
         )
 
     # ------------------------------------------------------------------ steps
@@ -252,6 +287,13 @@ class EdgeShell:
             sent = counts["on_time"] + counts["missed"]
             share = counts["on_time"] / sent if sent else None
             self.perception.annotate(overlay_of(record, counts["steps"], share))
+        if self.recorder is not None:
+            # the frame the step used, and what the recorder was given since the last step:
+            # sent now, when the cars take a move before the next decision, not between a
+            # frame's rehearsal and its decision (pickling them would cool the caches the
+            # rehearsal warmed)
+            self.perception.keep_frame(state.t_capture_ns)
+            self.recorder.flush()
 
     # ------------------------------------------------------------------ the live view
     def _publish(self, *, final: bool = False) -> None:
@@ -270,7 +312,7 @@ class EdgeShell:
                 "joined": sorted(self.link.ready_cars()),
                 "totals": counts.totals(),
                 "link": self.link.counters(),
-                "camera": {"captured": camera.captured, "dropped": camera.dropped},
+                "camera": camera.counters,
                 "frame_age_ns": None if self._captured_ns is None else now - self._captured_ns,
                 "stopped": core.stopped,
             },

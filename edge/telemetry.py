@@ -3,13 +3,15 @@
 Spans of the timing model (docs/timing.md), in the edge's monotonic clock (the cars' receive times
 come back converted to it, and on one machine every process shares it):
 
+- ``frame_age``: camera capture -> the frame handed over by the camera source (exposure,
+  transfer, the driver's queue; 0 where a source knows no better than the arrival);
 - ``frame_to_state``: camera capture -> cars' cells known (vision + fleet update);
 - ``state_to_commands``: cells known -> every command of the step ready (masking, grouping,
   inference, safety);
 - ``commands_to_received``: decision -> the last car of the step received its command (from
   the acks' receive times); ``decision_to_acked`` is the same until the last ack is back;
 - ``frame_to_received``: capture of the frame a step decided on -> the last car received its
-  command: the whole loop from the camera to the wheels.
+  command: the whole loop from the camera's exposure to the wheels.
 
 The runtime runs for hours, so totals are fixed-size log histograms (about 1.6 % bin width),
 not growing lists; the live line uses the last few hundred samples. Every record also goes,
@@ -24,12 +26,14 @@ import os
 import sys
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
 SPANS = (
+    "frame_age",
     "frame_to_state",
     "state_to_commands",
     "commands_to_received",
@@ -125,7 +129,9 @@ class Telemetry:
         live: bool = True,
         stream: IO[str] | None = None,
         live_period_s: float = 1.0,
+        tap: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
+        """``tap`` is given every record as it is written (the flight recorder)."""
         self.spans = {name: Histogram() for name in SPANS}
         self.vision = Histogram()
         """Time the vision spent on each frame (in the perception process)."""
@@ -147,6 +153,7 @@ class Telemetry:
         self._period_ns = int(live_period_s * 1e9)
         self._next_live_ns = self.started_ns + self._period_ns
         self._steps_at_live = 0
+        self._tap = tap
 
     def _span(self, name: str, ns: int | None) -> None:
         if ns is not None and ns >= 0:
@@ -154,6 +161,8 @@ class Telemetry:
             self.recent[name].append(ns)
 
     def _write(self, record: dict[str, Any]) -> None:
+        if self._tap is not None:
+            self._tap(record)
         if self._file is not None:
             self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
 
@@ -166,13 +175,17 @@ class Telemetry:
         dropped: int,
         uncertain: int = 0,
         vision_ns: int | None = None,
+        arrived_ns: int | None = None,
     ) -> None:
         """A frame was turned into cells (``state_ns``: when they were known); ``seen`` car
-        markers on the grid, ``uncertain`` of them too near a border to place."""
+        markers on the grid, ``uncertain`` of them too near a border to place; it reached the
+        edge's camera source at ``arrived_ns`` (None: at capture)."""
         self.counts["frames"] += 1
         self.counts["frames_dropped"] = dropped
         self.counts["sightings_found"] += seen - uncertain
         self.counts["sightings_uncertain"] += uncertain
+        age = None if arrived_ns is None else arrived_ns - captured_ns
+        self._span("frame_age", age)
         self._span("frame_to_state", state_ns - captured_ns)
         if vision_ns is not None:
             self.vision.add(vision_ns)
@@ -181,6 +194,7 @@ class Telemetry:
                 "kind": "frame",
                 "index": index,
                 "t_ns": captured_ns,
+                "age_ns": age,
                 "frame_to_state_ns": state_ns - captured_ns,
                 "seen": seen,
                 "uncertain": uncertain,
@@ -204,7 +218,7 @@ class Telemetry:
                 self.per_car[int(car)]["sent"] += 1
         for car in record.get("late_cars", ()):
             self.per_car[int(car)]["late"] += 1
-        for name in SPANS[1:]:
+        for name in SPANS[2:]:
             self._span(name, record.get(f"{name}_ns"))
         self._write({"kind": "step", **record})
         now_ns = record.get("t_ns", time.monotonic_ns())

@@ -154,6 +154,8 @@ class Scene:
     cells: dict[str, frozenset[tuple[int, int]]]
     vision_ns: int
     """Time `Vision.process` spent on this frame."""
+    t_arrival_ns: int | None = None
+    """When the camera source handed the frame over (its age: this minus the capture)."""
     warnings: tuple[str, ...] = ()
     """One-line warnings about the setup first known in this frame (each comes once): the arena
     lost or not found (every car held) and found again, a car marker whose size says it is not
@@ -654,5 +656,6 @@ class Vision:
             cars=sightings,
             cells=cells,
             vision_ns=time.perf_counter_ns() - t0,
+            t_arrival_ns=frame.t_arrival_ns,
             warnings=tuple(w for w in warnings if w is not None),
         )

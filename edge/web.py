@@ -70,6 +70,8 @@ SPANS = {  # the edge's histograms: metric name, what it measures
                              "received its command (the 10 ms dispatch deadline)"),
     "frame_to_received": ("udan_loop_latency_seconds", "Camera capture to the last car "
                           "received its command"),
+    "frame_age": ("udan_frame_age_seconds", "Camera capture to the frame handed over by the "
+                  "camera source (exposure, transfer, the driver's queue)"),
     "frame_to_state": ("udan_frame_to_state_seconds", "Camera capture to the cars' cells known "
                        "in the loop (vision and transfer)"),
     "vision": ("udan_vision_seconds", "Time the vision spent on a frame"),
@@ -303,8 +305,13 @@ class EdgeCollector:
         sightings.add_metric(["found"], counts.get("sightings_found", 0))
         sightings.add_metric(["uncertain"], counts.get("sightings_uncertain", 0))
         yield sightings
+        camera = snapshot["camera"]
         yield _counter("udan_frames_dropped", "Frames whose scene the loop never got",
-                       snapshot["camera"]["dropped"])  # fmt: skip
+                       camera["dropped"])  # fmt: skip
+        yield _counter("udan_frames_stale", "Frames skipped for waiting in a driver queue "
+                       "longer than a frame period", camera.get("stale", 0))  # fmt: skip
+        yield _counter("udan_frames_incomplete", "GenICam buffers dropped incomplete (lost "
+                       "stream packets)", camera.get("incomplete", 0))  # fmt: skip
         yield _counter("udan_estop_frames", "Emergency stop frames sent to cars",
                        snapshot["link"].get("estops", 0))  # fmt: skip
         yield _counter("udan_live_records_dropped", "Snapshots the web view missed (it was "

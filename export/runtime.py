@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from udan.envs.grouping import form_groups, group_rounds, neighbour_table, one_group_a_round
+from udan.envs.grouping import form_groups, neighbour_table, round_order
 from udan.envs.observe import ObsSpec
 from udan.export.metadata import MetadataError, check_metadata
 
@@ -45,21 +45,8 @@ def round_inputs(groups: np.ndarray) -> dict[str, np.ndarray]:
     (:func:`udan.envs.grouping.form_groups`): the groups as columns, leader first, listed round
     after round, round r being the ``round_groups[r]`` columns after those of earlier rounds.
     No groups gives G = 0 and R = 0."""
-    if len(groups) == 0:
-        return {
-            "members": np.zeros((groups.shape[1], 0), np.int64),
-            "round_groups": np.zeros(0, np.int64),
-        }
-    rounds = group_rounds(groups)
-    if len(rounds) == len(groups):  # one group a round: the groups' own (priority) order
-        return {
-            "members": np.array(groups.T, np.int64, order="C"),  # a copy: bindings hold it
-            "round_groups": np.ones(len(groups), np.int64),
-        }
-    return {
-        "members": np.ascontiguousarray(groups[np.concatenate(rounds)].T, np.int64),
-        "round_groups": np.array([len(r) for r in rounds], np.int64),
-    }
+    order, sizes = round_order(groups)
+    return {"members": np.ascontiguousarray(groups[order].T, np.int64), "round_groups": sizes}
 
 
 def forget(h: np.ndarray, c: np.ndarray, fresh: np.ndarray) -> None:
@@ -68,6 +55,12 @@ def forget(h: np.ndarray, c: np.ndarray, fresh: np.ndarray) -> None:
     if fresh.any():
         h[:, fresh] = 0.0
         c[:, fresh] = 0.0
+
+
+def _put(buffer: np.ndarray, array: np.ndarray) -> None:
+    """``array`` into a bound ``buffer``, unless it is that buffer (written in place)."""
+    if array is not buffer:
+        np.copyto(buffer, array)
 
 
 class PolicyGraph:
@@ -89,8 +82,8 @@ class PolicyGraph:
 
 
 class BoundGraph:
-    """The graph bound to buffers of N slots, as a running edge calls it: a step copies its
-    observations into a bound buffer and runs.
+    """The graph bound to buffers of N slots, as a running edge calls it: a step's observations
+    are in a bound buffer (:attr:`obs`: written there in place, or copied in) and it runs.
 
     Binding inputs anew costs onnxruntime about as much as a layer of these networks, so
     nothing is rebound between group formations: two bindings take turns, each reading the
@@ -140,16 +133,7 @@ class BoundGraph:
     def bind_groups(self, groups: np.ndarray) -> None:
         """Groups (G, s) in priority order for the calls from now on. Copied into the bound
         buffers when they have the same shapes (a steady fleet: binding costs ~10 µs an
-        input), bound anew otherwise; groups that are each a round of their own (a small
-        fleet's always are) need only their members copied."""
-        members, bound_rounds = self.inputs["members"], self.inputs["round_groups"]
-        if (
-            one_group_a_round(groups)
-            and members.shape == groups.T.shape
-            and len(bound_rounds) == len(groups)
-        ):  # G rounds of G groups: round_groups holds ones already
-            np.copyto(members, groups.T)
-            return
+        input), bound anew otherwise."""
         rounds = round_inputs(groups)
         if all(rounds[name].shape == self.inputs[name].shape for name in rounds):
             for name, array in rounds.items():
@@ -161,16 +145,18 @@ class BoundGraph:
                 binding.bind_cpu_input(name, array)
 
     def run(self, obs: np.ndarray) -> np.ndarray:
-        """One graph call on ``obs`` (N, D); returns ``action`` (N,)."""
-        np.copyto(self.obs, obs)
+        """One graph call on ``obs`` (N, D), which may be the bound buffer :attr:`obs` itself
+        (nothing is copied then); returns ``action`` (N,)."""
+        _put(self.obs, obs)
         return self._call(self.bindings)
 
     def score(self, obs: np.ndarray, table: np.ndarray) -> np.ndarray:
         """The first call of a formation step: encode ``obs`` and score leaders over the
         neighbour ``table`` (N, K); returns ``leader_logits`` (N,). The state is now this
-        step's features: :meth:`run_encoded` finishes the step with the groups."""
-        np.copyto(self.obs, obs)
-        np.copyto(self.table, table)
+        step's features: :meth:`run_encoded` finishes the step with the groups. Either may be
+        the bound buffer itself (:attr:`obs`, :attr:`table`)."""
+        _put(self.obs, obs)
+        _put(self.table, table)
         self._call(self.scoring)
         return self.leader_logits
 
@@ -187,9 +173,9 @@ class BoundGraph:
         """The call :meth:`run` (or, given a neighbour ``table``, :meth:`score`) would make,
         with nothing kept: it writes only what the next real call overwrites before reading
         (the other turn's state, ``q``, ``action``, the leader scores), and the turn stays."""
-        np.copyto(self.obs, obs)
+        _put(self.obs, obs)
         if table is not None and self.scoring:
-            np.copyto(self.table, table)
+            _put(self.table, table)
             self.graph.session.run_with_iobinding(self.scoring[self.turn])
         else:
             self.graph.session.run_with_iobinding(self.bindings[self.turn])
@@ -269,11 +255,19 @@ class OnnxPolicy:
         self.formed = self._forms_groups(present)
         if self.formed:
             self.reform = False
-            table = neighbour_table(pos, present, self.neighbours)
+            table = neighbour_table(pos, present, self.neighbours, out=self._steps.table)
             self.groups = self._form(pos, present, table, self._steps.score(obs, table))
             self._steps.bind_groups(self.groups)
             return self._done(self._steps.run_encoded())
         return self._done(self._steps.run(obs))
+
+    def observations(self, slots: int) -> np.ndarray:
+        """The bound observation buffer (``slots``, D) of the next :meth:`act`: observations
+        written into it in place are not copied again (another number of slots binds the
+        graph anew, as :meth:`act` would)."""
+        if slots != len(self._steps.obs):
+            self._resize(slots)
+        return self._steps.obs
 
     def rehearse(self, obs: np.ndarray, present: np.ndarray, pos: np.ndarray) -> bool:
         """Go through the work of :meth:`act` on ``obs`` (the last step's, say) and keep
@@ -286,11 +280,17 @@ class OnnxPolicy:
         if len(obs) != len(self._steps.obs):
             return False
         if self._forms_groups(present):
-            table = neighbour_table(pos, present, self.neighbours)
+            table = neighbour_table(pos, present, self.neighbours, out=self._steps.table)
             self._steps.rehearse(obs, table)
             round_inputs(self._form(pos, present, table, self._steps.leader_logits))
         self._steps.rehearse(obs)
         return True
+
+    def rerun(self) -> None:
+        """The graph call of a step that keeps its groups, once more on what the last step
+        bound (its observations, the state it left, its groups), keeping nothing: onnxruntime
+        alone, the bare call that ``bench/decision.py`` holds a whole decision step against."""
+        self._steps.graph.session.run_with_iobinding(self._steps.bindings[self._steps.turn])
 
     def _forms_groups(self, present: np.ndarray) -> bool:
         """A step with ``present`` forms groups: every ``interval`` steps, after a resize, and

@@ -30,9 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple, Protocol
 
-import numpy as np
 import serial
-from numpy.typing import ArrayLike
 
 from udan.envs.rules import ACTION_DELTAS, WAIT
 from udan.firmware_mock import serial_link as sl
@@ -40,6 +38,7 @@ from udan.firmware_mock import wire
 from udan.firmware_mock.core import Telemetry
 from udan.firmware_mock.faults import Faults
 from udan.firmware_mock.wire import STOP_ACTION
+from udan.profile import move_span, travelled
 
 Cell = tuple[int, int]
 BATTERY_FULL_MV = 8200
@@ -70,20 +69,6 @@ class Pose(NamedTuple):
 def wrap(angle: float) -> float:
     """An angle in -pi..pi."""
     return math.remainder(angle, math.tau)
-
-
-def travelled(tau: ArrayLike, accel_share: float) -> np.ndarray:
-    """Share of a move covered after share ``tau`` of its time (a number or an array), for a
-    trapezoidal speed profile: constant acceleration for ``accel_share`` of the time, constant
-    speed, as long braking. ``accel_share`` 0 is constant speed (the exact level's cars)."""
-    tau = np.clip(tau, 0.0, 1.0)
-    a = accel_share
-    if a <= 0:
-        return tau
-    peak = 1 / (1 - a)
-    speeding = peak * tau * tau / (2 * a)
-    braking = 1 - peak * (1 - tau) ** 2 / (2 * a)
-    return np.where(tau < a, speeding, np.where(tau > 1 - a, braking, peak * (tau - a / 2)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -297,9 +282,7 @@ class Drive:
             return Trajectory(here, grid, now_ns, round(self.cell_time_s * 1e9), self.accel_share)
         cells = math.hypot(end.x - here.x, end.y - here.y) / self.cell_m
         turns = abs(wrap(end.heading - here.heading)) / (math.pi / 2) * QUARTER_TURN_CELLS
-        # a cell takes a cell time; a shorter move is limited by the acceleration (time grows
-        # as the square root of the distance), a longer one by the top speed
-        span = max(cells, math.sqrt(cells), turns, math.sqrt(turns))
+        span = move_span(cells, turns)
         return Trajectory(here, end, now_ns, round(self.cell_time_s * span * 1e9), self.accel_share)
 
     def _start(self, order: _Order) -> None:

@@ -13,6 +13,13 @@ once, at a time counted from the first episode's start:
 - ``forge=N@T``: N forged or malformed datagrams to the edge and to every car (random bytes,
   frames with a wrong key, truncated and replayed-looking frames): dropped and counted.
 
+Faults of the GigE Vision camera (``udan-hil run --camera gige``, :mod:`udan.hil.gige`), from
+the start: ``gige_loss=P`` drops each stream packet with probability P (lost packets are not
+resent: the frame arrives incomplete); ``frame_delay=D`` holds the frames of every other tenth
+of a second (on the monotonic clock) for D between their timestamp and their first packet, so
+frames held and not held can be compared in one run. And once: ``unplug=D@T``: the camera goes
+away at T and comes back D later.
+
 Durations take ``ms`` or ``s``; probabilities are in [0, 1].
 """
 
@@ -29,6 +36,7 @@ _NETWORK = {
     "jitter": "jitter_ms",
 }
 _PROBABILITIES = {"loss", "duplicate", "reorder"}
+_CAMERA = {"gige_loss": "lost_ratio", "frame_delay": "delay_ms"}
 _EVENT = re.compile(r"^(?:car(?P<car>\d+)|(?P<dur>[\d.]+m?s)|(?P<count>\d+))@(?P<at>[\d.]+m?s)$")
 
 
@@ -53,6 +61,8 @@ class FaultPlan:
 
     network: dict[str, float] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
+    camera: dict[str, float] = field(default_factory=dict)
+    """Faults of the GigE camera (``lost_ratio``, ``delay_ms``)."""
 
 
 def seconds(text: str, what: str) -> float:
@@ -64,6 +74,16 @@ def seconds(text: str, what: str) -> float:
     return value / 1000 if match.group(2) == "ms" else value
 
 
+def _probability(name: str, value: str) -> float:
+    try:
+        p = float(value)
+    except ValueError:
+        raise FaultSpecError(f"{name}={value}: not a probability") from None
+    if not 0.0 <= p <= 1.0:
+        raise FaultSpecError(f"{name}={value}: not a probability in [0, 1]")
+    return p
+
+
 def parse_faults(spec: str | None) -> FaultPlan:
     """Parse a comma-separated fault spec (empty or None: no faults)."""
     plan = FaultPlan()
@@ -73,20 +93,20 @@ def parse_faults(spec: str | None) -> FaultPlan:
             raise FaultSpecError(f"fault {item!r} is not NAME=VALUE")
         if name in _NETWORK:
             if name in _PROBABILITIES:
-                try:
-                    p = float(value)
-                except ValueError:
-                    raise FaultSpecError(f"{name}={value}: not a probability") from None
-                if not 0.0 <= p <= 1.0:
-                    raise FaultSpecError(f"{name}={value}: not a probability in [0, 1]")
-                plan.network[_NETWORK[name]] = p
+                plan.network[_NETWORK[name]] = _probability(name, value)
             else:
                 plan.network[_NETWORK[name]] = seconds(value, name) * 1000
+            continue
+        if name == "gige_loss":
+            plan.camera[_CAMERA[name]] = _probability(name, value)
+            continue
+        if name == "frame_delay":
+            plan.camera[_CAMERA[name]] = seconds(value, name) * 1000
             continue
         match = _EVENT.match(value)
         if name in ("reboot", "leave", "join", "cut") and match and match.group("car"):
             plan.events.append(Event(name, seconds(match["at"], name), car=int(match["car"])))
-        elif name == "stall" and match and match.group("dur"):
+        elif name in ("stall", "unplug") and match and match.group("dur"):
             plan.events.append(
                 Event(name, seconds(match["at"], name), seconds=seconds(match["dur"], name))
             )
@@ -95,6 +115,7 @@ def parse_faults(spec: str | None) -> FaultPlan:
         else:
             raise FaultSpecError(
                 f"unknown or malformed fault {item!r} (known: {', '.join(_NETWORK)}, "
-                "reboot=carN@T, leave=carN@T, join=carN@T, cut=carN@T, stall=D@T, forge=N@T)"
+                "reboot=carN@T, leave=carN@T, join=carN@T, cut=carN@T, stall=D@T, forge=N@T; with "
+                "--camera gige: gige_loss, frame_delay, unplug=D@T)"
             )
     return plan

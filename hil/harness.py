@@ -1,7 +1,8 @@
 """udan-hil run: the closed loop, every part its own process, and what it measured.
 
     udan-hil run --task find_water --cars 1-5 --obstacles 0-9 --episodes 20 \\
-        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] [--motion-error lab] --report out/hil
+        [--model policy.onnx] [--faults loss=0.1,jitter=3ms] [--motion-error lab] [--camera gige] \\
+        [--record] --report out/hil
 
 starts the HIL world (``python -m udan.hil.world``: simulated arena, mock cars on loopback UDP, the
 virtual camera) and ``udan-edge`` through its own command line, lets the edge play the world's
@@ -20,6 +21,14 @@ and writes its report), then the world, and the report covers the episodes compl
 128 + the signal's number). The world and the edge end with the harness however it ends, even
 SIGKILLed: they are started asking the kernel to send them SIGTERM when it dies
 (:func:`udan.edge.sidecar.exit_with_parent`).
+
+``--camera gige`` puts a real GigE Vision stream between the world and the edge: the virtual
+camera's frames are served by Aravis's fake GigE camera on loopback (``python -m
+udan.hil.gige``) and the edge reads ``aravis://127.0.0.1`` in the same mode; the fault spec can
+then drop its stream packets, hold frames, or unplug it for a while. ``--record`` has the edge
+write its flight recording (``run.mcap``) and the world where every car really was
+(``truth.jsonl``); the report then checks every confident sighting of the recording against
+it (:mod:`udan.hil.truth`).
 
 Bad input (a report folder that cannot be written, an unknown task, a fault spec that does not
 parse, an unknown motion level, a missing model) is one line on stderr and exit code 2, and
@@ -66,6 +75,12 @@ PROGRESS_LINE_S = 10.0
 """Without a terminal, a progress line this often."""
 FIRST_EPISODE_POLL_S = 0.02
 """How often the fault injector asks the world whether the first episode has started."""
+
+
+DELAY_BLOCK_S = 0.1
+"""``frame_delay`` holds the fake GigE camera's frames in every other block of this long: short
+blocks, so that both kinds meet the same load (on a shared machine it changes from second to
+second)."""
 
 
 class HarnessError(RuntimeError):
@@ -116,6 +131,14 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--edge-realtime", action="store_true", help="udan-edge --realtime (needs CAP_SYS_NICE)"
     )
+    run.add_argument(
+        "--camera", choices=("virtual", "gige"), default="virtual",
+        help="the edge reads the virtual camera's shared memory, or a GigE Vision stream of it",
+    )  # fmt: skip
+    run.add_argument(
+        "--record", action="store_true",
+        help="the edge's flight recording (run.mcap) and the world's truth, checked",
+    )  # fmt: skip
     run.add_argument(
         "--edge-perception",
         choices=("process", "thread"),
@@ -210,6 +233,8 @@ class Loop:
         ]  # fmt: skip
         if a.episodes is not None:
             cmd += ["--episodes-per-cell", str(a.episodes)]
+        if a.record:
+            cmd += ["--truth", str(self.folder / "truth.jsonl")]
         proc = self._spawn("world", cmd)
         reading = asyncio.get_running_loop().run_in_executor(None, proc.stdout.readline)
         stopped = asyncio.ensure_future(stopping.wait())
@@ -227,16 +252,37 @@ class Loop:
                 f"the HIL world did not start; see {self.folder / 'world.log'}"
             ) from None
 
+    def start_gige(self) -> None:
+        """The fake GigE camera serving the virtual camera on loopback; waits for it."""
+        camera = self.faults.camera
+        cmd = [
+            sys.executable, "-m", "udan.hil.gige", "--camera-name", self.camera,
+            "--lost-ratio", str(camera.get("lost_ratio", 0.0)),
+            "--delay-ms", str(camera.get("delay_ms", 0.0)),
+            "--delay-block-s", str(DELAY_BLOCK_S),
+        ]  # fmt: skip
+        proc = self._spawn("gige", cmd)
+        line = proc.stdout.readline() if proc.stdout else ""
+        if not line.startswith("{"):
+            raise HarnessError(f"the fake GigE camera did not start; see {self.folder}/gige.log")
+
+    def camera_url(self) -> str:
+        if self.args.camera == "virtual":
+            return f"virtual://{self.camera}"
+        return f"aravis://127.0.0.1?width=1920&height=1200&fps={self.args.fps:g}"
+
     def start_edge(self, control_port: int) -> subprocess.Popen:
         a = self.args
         edge = Path(sys.executable).with_name("udan-edge")
         cmd = [
-            str(edge), "--camera", f"virtual://{self.camera}", "--model", str(a.model),
+            str(edge), "--camera", self.camera_url(), "--model", str(a.model),
             "--fleet", str(self.fleet), "--listen", f"127.0.0.1:{self.edge_port}",
             "--world", f"127.0.0.1:{control_port}", "--episode-steps", str(a.episode_steps),
             "--report", str(self.folder / "edge.json"),
             "--telemetry", str(self.folder / "telemetry.jsonl"), "--quiet",
             "--settle-mm", str(a.settle_mm), "--settle-deg", str(a.settle_deg),
+            "--cell-time-ms", str(a.cell_time_ms),
+            "--accel-share", str(motion_level(a.motion_error).accel_share),
         ]  # fmt: skip
         if a.duration is not None:
             cmd += ["--duration", str(a.duration)]
@@ -244,6 +290,8 @@ class Loop:
             cmd.append("--realtime")
         if a.video:
             cmd += ["--video", str(self.folder / "run.mp4")]
+        if a.record:
+            cmd += ["--record", str(self.folder / "run.mcap")]
         cmd += ["--perception", a.edge_perception]
         return self._spawn("edge", cmd)
 
@@ -272,6 +320,16 @@ class Loop:
                 self.events_done.append(
                     {"kind": "forge", "at_s": event.at_s, "t_ns": now_ns, **sent}
                 )
+                continue
+            if event.kind == "unplug":
+                self.procs["gige"].kill()  # a camera unplugged says nothing first
+                self.procs["gige"].wait()
+                await asyncio.sleep(event.seconds or 0.0)
+                self.start_gige()
+                self.events_done.append(
+                    {"kind": "unplug", "at_s": event.at_s, "t_ns": now_ns,
+                     "back_ns": time.monotonic_ns()}
+                )  # fmt: skip
                 continue
             request: dict[str, Any] = {"op": event.kind}
             if event.car is not None:
@@ -421,6 +479,8 @@ async def run_loop(
         if port is None:
             raise Stopped(interrupted[0])
         control = ("127.0.0.1", port)
+        if args.camera == "gige":
+            loop.start_gige()
         edge = loop.start_edge(port)
         injector = asyncio.ensure_future(loop.apply_faults(control))
         deadline = None if args.timeout is None else time.monotonic() + args.timeout
@@ -451,13 +511,30 @@ async def run_loop(
     edge_report_path = folder / "edge.json"
     if not edge_report_path.is_file():
         raise HarnessError(f"udan-edge wrote no report (exit {exits.get('edge')}); see edge.log")
-    return {
+    result = {
         "edge": json.loads(edge_report_path.read_text()),
         "world": world_summary or {},
         "exits": exits,
         "events": loop.events_done,
         "interrupted": interrupted[0] if interrupted else None,
     }
+    if args.record:
+        result["sightings"] = check_recording(args, folder)
+    return result
+
+
+def check_recording(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
+    """The edge's recorded sightings against the world's truth (the fake GigE camera's picture
+    may be up to two frame periods older than its timestamp)."""
+    from udan.edge.flightlog import FlightLogError, read_flight_log
+    from udan.hil.truth import Truth, check_sightings
+
+    try:
+        log = read_flight_log(folder / "run.mcap")
+    except FlightLogError as err:
+        return {"error": str(err)}
+    lag_ns = 0 if args.camera == "virtual" else round(2e9 / args.fps)
+    return check_sightings(log, Truth(folder / "truth.jsonl"), lag_ns)
 
 
 def planned_episodes(args: argparse.Namespace) -> int | None:
@@ -483,6 +560,8 @@ def _check(args: argparse.Namespace) -> FaultPlan:
         raise HarnessError(f"model {args.model}: no such file")
     motion_level(args.motion_error)
     faults = parse_faults(args.faults)
+    if args.camera != "gige" and (faults.camera or any(e.kind == "unplug" for e in faults.events)):
+        raise HarnessError("gige_loss, frame_delay and unplug are faults of --camera gige")
     try:
         args.report.mkdir(parents=True, exist_ok=True)
         probe = args.report / ".write-test"

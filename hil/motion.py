@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from udan.envs.errors import EnvConfigError
-from udan.firmware_mock.motor import Pose, Trajectory, travelled, wrap
+from udan.firmware_mock.motor import Pose, Trajectory, wrap
 from udan.hil.render import CAR_BODY_M
+from udan.profile import travelled
 
 _HALF_DIAGONAL = CAR_BODY_M / math.sqrt(2)
 

@@ -437,3 +437,21 @@ def render_plane(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=background,
     )
+
+
+def circling_cars(renderer: Renderer, frames: int, cars: int = 5) -> list[np.ndarray]:
+    """``frames`` frames of ``cars`` cars (markers 5, 6, ...), each going round a circle a cell
+    across once over the frames, in a fixed layout: frames drawn once and replayed in a loop
+    (the benches' camera)."""
+    geometry = renderer.geometry
+    cells = {"obstacle": [(4, 4)], "wall": [(0, 1)], "water": [(0, 4)], "target": []}
+    out = []
+    for f in range(frames):
+        angle = 2 * math.pi * f / frames
+        placed = []
+        for k in range(cars):
+            cx, cy = geometry.cell_centre(2 + k, 1 + (3 * k) % 7)
+            r = geometry.cell_m / 2
+            placed.append((5 + k, cx + r * math.cos(angle), cy + r * math.sin(angle), angle + k))
+        out.append(renderer.render(placed, cells))
+    return out

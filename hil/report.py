@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 SPAN_TITLES = {
+    "frame_age": "frame age on arrival",
     "frame_to_state": "frame → state",
     "state_to_commands": "state → commands",
     "commands_to_received": "commands → received by car",
@@ -334,6 +335,8 @@ def write_report(
         "edge_scheduler": edge.get("scheduler"),
         "exits": result["exits"],
     }
+    if "sightings" in result:
+        headline["wrong_cells"] = result["sightings"].get("wrong")
     summary = {
         "headline": headline,
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
@@ -344,6 +347,7 @@ def write_report(
         "world": world,
         "events": result["events"],
         "motion": motion,
+        **({"sightings": result["sightings"]} if "sightings" in result else {}),
     }
     (folder / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
     pictures = []

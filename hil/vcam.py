@@ -19,12 +19,11 @@ import threading
 import time
 from collections.abc import Callable
 from functools import partial
-from multiprocessing import shared_memory
 
 import cv2
 import numpy as np
 
-from udan.edge.camera import FrameBell, VcamLayout
+from udan.edge.camera import FrameWriter
 
 
 class _Recorder:
@@ -75,16 +74,8 @@ class VirtualCamera:
         seed: int = 0,
     ) -> None:
         self.name = name
-        self.layout = VcamLayout(width, height, slots)
-        try:
-            self._shm = shared_memory.SharedMemory(name, create=True, size=self.layout.size)
-        except FileExistsError:
-            raise FileExistsError(
-                f"virtual camera {name!r} already exists (another writer is running, or remove "
-                f"the stale /dev/shm/{name})"
-            ) from None
-        self.layout.write_header(self._shm.buf)
-        self._bell = FrameBell(self._shm.buf)
+        self._writer = FrameWriter(name, width, height, slots)
+        self.layout = self._writer.layout
         self.drop_probability = drop_probability
         self.frames = 0
         """Frames offered (rendered), including the ones faults swallowed."""
@@ -124,10 +115,9 @@ class VirtualCamera:
         if t_ns < self._stall_until_ns or self._rng.random() < self.drop_probability:
             self.faulted += 1
             return False
-        image = self.layout.begin(self._shm.buf, self.frames)
+        image = self._writer.begin(self.frames)
         draw(image)
-        self.layout.commit(self._shm.buf, self.frames, t_ns)
-        self._bell.ring()
+        self._writer.commit(self.frames, t_ns)
         self.published += 1
         if self._recorder is not None:
             self._recorder.add(image)
@@ -158,12 +148,9 @@ class VirtualCamera:
         if self._closed:
             return
         self._closed = True
-        self.layout.mark_closed(self._shm.buf)
-        self._bell.ring()
+        self._writer.close()
         if self._recorder is not None:
             self._recorder.close()
-        self._shm.close()
-        self._shm.unlink()
 
     def __enter__(self) -> VirtualCamera:
         return self

@@ -169,6 +169,11 @@ class HilWorld:
         self._touching: set[tuple[int, int]] = set()
         self._swept_ns = time.monotonic_ns()  # contacts are counted up to here
         self._started_ns = self._swept_ns
+        self.history: list[tuple[int, dict[int, Cell], dict[int, tuple[Cell, Cell, int]]]] = []
+        """Every change, once :attr:`keep_history` is set: (when, every car's cell, the moves in
+        progress as their start and end cells), the truth a recording's sightings are checked
+        against (:mod:`udan.hil.truth`)."""
+        self.keep_history = False
         self._lock = threading.Lock()
 
     def scene(self) -> Scene:
@@ -184,8 +189,26 @@ class HilWorld:
             self.layout, self.pose, self.motion = layout, pose, motion
 
     def _changed(self) -> None:
+        scene = self.scene()
+        if self.keep_history:
+            cells = {car: self._cell(pose) for car, pose in scene[1].items()}
+            moves = {car: (self._cell(m.start), self._cell(m.end), m.started_ns)
+                     for car, m in scene[2].items()}  # fmt: skip
+            self.history.append((time.monotonic_ns(), cells, moves))
         if self.listener is not None:
-            self.listener(self.scene())
+            self.listener(scene)
+
+    def write_history(self, path: Path) -> None:
+        """The history as JSON lines: ``{"t_ns", "pose": {car: cell}, "motion": {car: [from,
+        to, start_ns]}}``."""
+        with path.open("w", encoding="utf-8") as out:
+            for t_ns, pose, motion in self.history:
+                record = {
+                    "t_ns": t_ns,
+                    "pose": {str(c): list(p) for c, p in pose.items()},
+                    "motion": {str(c): [list(a), list(b), t0] for c, (a, b, t0) in motion.items()},
+                }
+                out.write(json.dumps(record, separators=(",", ":")) + "\n")
 
     def _cell(self, pose: Pose) -> Cell:
         return math.floor(pose.y / self.cell_m), math.floor(pose.x / self.cell_m)
@@ -377,6 +400,10 @@ class HilWorld:
 
 #: The camera process yields the CPU to the cars and the edge (Unix niceness, higher is nicer).
 CAMERA_NICENESS = 10
+CAMERA_SLOTS = 8
+"""Frames the virtual camera's shared memory holds (200 ms at 40 FPS): the perception process
+is lent its frame in place, and the flight recorder's frame ring copies a decision's frame out
+of its slot only when the edge asks for it, tens of milliseconds later."""
 
 
 class CameraProcess:
@@ -438,7 +465,9 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     try:
         model = CameraModel(**config["model"])
         renderer = Renderer(config["geometry"], model)
-        camera = VirtualCamera(config["name"], model.width, model.height, fps=config["fps"])
+        camera = VirtualCamera(
+            config["name"], model.width, model.height, slots=CAMERA_SLOTS, fps=config["fps"]
+        )
     except (OSError, ValueError) as err:
         conn.send(("error", str(err)))
         return
@@ -517,6 +546,7 @@ class WorldServer:
         markers = {s.car_id: s.marker for s in self.specs}
         self.level = motion_level(args.motion_error)
         self.world = HilWorld(self.geometry, markers, self.level, seed=args.seed)
+        self.world.keep_history = args.truth is not None
         self.episodes = plan(
             parse_range(args.agents, "agents"),
             parse_range(args.obstacles, "obstacles"),
@@ -633,6 +663,8 @@ class WorldServer:
             for car in self.cars.values():
                 car.close()
             control.close()
+            if args.truth is not None:
+                self.world.write_history(args.truth)
         return {"world": self.world.state()["counts"], **camera, "cars": counters}
 
 
@@ -657,6 +689,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--k1", type=float, default=0.0, help="lens distortion k1")
     p.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma (grey levels)")
     p.add_argument("--blur", type=float, default=0.6, help="blur sigma (pixels)")
+    p.add_argument("--truth", type=Path, help="write where every car was, when, here at exit")
     return p
 
 

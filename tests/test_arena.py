@@ -7,7 +7,8 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import udan.envs as envs
-from udan.envs.arena import ArenaBatch, ArenaConfig
+from udan.envs.arena import ArenaBatch, ArenaConfig, scene_codes, task_rewards
+from udan.envs.observe import AGENT_BIT, OBJECTIVE_BIT
 from udan.envs.rules import FREE, OBSTACLE, WAIT, WATER
 
 
@@ -70,6 +71,65 @@ def test_surround_scores_adjacency_and_penalises_every_fourth_step():
     assert [a for a, _ in rewards] == [1.0] * 8
     assert [b for _, b in rewards] == [0, 0, 0, -1, 0, 0, 0, -1]
     assert env.target_score[0] == -8
+    assert env.adjacent_steps[0].tolist() == [8, 0]  # the paper's goal score: -4 per agent
+
+
+def _previous_task_rewards(task, layout, pos, present, target, t):
+    """task_rewards as numpy arrays, before its loop moved to udan._kernels (commit b68a9ec):
+    the oracle the C loop is held to."""
+    if task == "find_water":
+        front = pos[..., 0] == 1
+        source = layout[np.arange(len(layout))[:, None], 0, pos[..., 1]] == WATER
+        reward = (front & source).astype(np.float32)
+    else:
+        adjacent = np.abs(pos - target[:, None]).sum(-1) == 1
+        penalty = (np.asarray(t) % 4 == 0)[:, None] & ~adjacent
+        reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
+    return np.where(present, reward, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("task", ["find_water", "surround"])
+def test_rewards_are_bit_for_bit_those_of_the_previous_array_code(task):
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        batch, n, height, width = (int(v) for v in rng.integers(1, 9, 4))
+        layout = rng.choice([FREE, OBSTACLE, WATER], (batch, height, width)).astype(np.uint8)
+        pos = np.stack(
+            [rng.integers(0, height, (batch, n)), rng.integers(0, width, (batch, n))], -1
+        )
+        target = np.stack([rng.integers(0, height, batch), rng.integers(0, width, batch)], -1)
+        present, t = rng.random((batch, n)) < 0.8, rng.integers(0, 50, batch)
+        want = _previous_task_rewards(task, layout, pos, present, target, t)
+        assert task_rewards(task, layout, pos, present, target, t).tobytes() == want.tobytes()
+
+
+def _previous_scene_codes(padded_layout, pos, present, view, target=None):
+    """scene_codes as numpy arrays, before its loop moved to udan._kernels (commit b68a9ec)."""
+    codes = padded_layout.copy()
+    batch, hp, wp = codes.shape
+    flat = codes.reshape(-1)
+    origin = view * wp + view
+    arenas = np.arange(batch)[:, None] * (hp * wp) + origin if batch > 1 else origin
+    flat[(pos[..., 0] * wp + pos[..., 1] + arenas)[present]] |= AGENT_BIT
+    if target is not None:
+        flat[target[:, 0] * wp + target[:, 1] + np.ravel(arenas)] |= OBJECTIVE_BIT
+    return codes
+
+
+def test_scene_codes_are_those_of_the_previous_array_code():
+    """Agents anywhere on the arena (several on one cell too), absent ones, a target or none,
+    and the edge's (-1, -1) for a target not seen: the same bytes."""
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        batch, n, height, width = (int(v) for v in rng.integers(1, 9, 4))
+        view = int(rng.integers(1, 4))
+        padded = rng.integers(0, 8, (batch, height + 2 * view, width + 2 * view)).astype(np.uint8)
+        rows, cols = rng.integers(0, height, (batch, n)), rng.integers(0, width, (batch, n))
+        pos, present = np.stack([rows, cols], -1), rng.random((batch, n)) < 0.7
+        target = np.stack([rng.integers(-1, height, batch), rng.integers(-1, width, batch)], -1)
+        for seen in (None, target):
+            want = _previous_scene_codes(padded, pos, present, view, seen)
+            assert scene_codes(padded, pos, present, view, seen).tobytes() == want.tobytes()
 
 
 def test_surround_target_flees_and_a_follower_stays_adjacent():

@@ -14,7 +14,22 @@ import cv2
 import numpy as np
 import pytest
 
-from udan.edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera, shm_path
+from udan.edge.camera import (
+    FRAME_THREAD_NICENESS,
+    CameraError,
+    CameraLost,
+    CameraMode,
+    CameraOptions,
+    CameraSource,
+    FrameGrabber,
+    StaleGuard,
+    fourcc_text,
+    mode_mismatches,
+    open_camera,
+    shm_path,
+    split_camera_url,
+    v4l2_capture_ns,
+)
 from udan.hil.vcam import VirtualCamera
 
 
@@ -93,6 +108,165 @@ def test_unknown_scheme_lists_the_known_ones():
     message = one_line_error("rtsp://10.0.0.1/stream")
     for scheme in ("device://", "folder://", "video://", "virtual://"):
         assert scheme in message
+
+
+# -- camera options, granted modes, timestamps ---------------------------------------------
+def test_the_url_is_the_one_place_a_mode_is_set():
+    scheme, target, options = split_camera_url(
+        "/dev/video0?width=1920&height=1080&fps=30&format=MJPG&exposure_us=2000&gain=4&strict=1"
+    )
+    assert (scheme, target) == ("device", "/dev/video0")
+    assert options == CameraOptions(1920, 1080, 30.0, "MJPG", 2000.0, 4.0, "auto", True)
+    assert options.given == {
+        "width": 1920, "height": 1080, "fps": 30.0, "format": "MJPG", "exposure_us": 2000.0,
+        "gain": 4.0, "strict": True,
+    }  # fmt: skip
+    scheme, target, options = split_camera_url("aravis://192.168.1.20?fps=40&clock=latch")
+    assert (scheme, target, options.fps, options.clock) == ("aravis", "192.168.1.20", 40.0, "latch")
+    assert split_camera_url("/dev/video2")[2] == CameraOptions()
+
+
+def test_a_path_with_a_question_mark_is_taken_whole(tmp_path):
+    folder = write_images(tmp_path / "what?width=3", 1)
+    assert split_camera_url(str(folder))[:2] == ("folder", str(folder))
+
+
+@pytest.mark.parametrize(
+    ("url", "says"),
+    [
+        ("/dev/video0?whidth=640", "unknown camera option 'whidth' (known: width, height, fps"),
+        ("/dev/video0?width=wide", "camera option width=wide: not a positive integer"),
+        ("/dev/video0?width=-640", "camera option width=-640: not a positive integer"),
+        ("/dev/video0?fps=0", "camera option fps=0: not a positive number"),
+        ("/dev/video0?gain=-1", "camera option gain=-1: not a number >= 0"),
+        ("/dev/video0?clock=ntp", "camera option clock=ntp: not one of auto, latch, realtime"),
+        ("/dev/video0?strict=yes", "camera option strict=yes: not 0 or 1"),
+        ("/dev/video0?format=M%20JPG", "not a pixel format name"),
+        ("/dev/video0?width=640&width=800", "camera option 'width' must be given once"),
+        ("/dev/video0?width", "camera option 'width' must be given once, as width=VALUE"),
+        ("/dev/video0?format=MJPEG", "a V4L2 pixel format is a FourCC of four characters"),
+        ("/dev/video0?clock=latch", "a V4L2 camera stamps frames with its driver's clock"),
+        ("/dev/video97?width=640", "camera device /dev/video97 does not exist"),
+    ],
+)
+def test_bad_camera_options_are_one_line_errors(url, says):
+    assert says in one_line_error(url)
+
+
+def test_sources_without_a_mode_refuse_options(tmp_path):
+    folder = write_images(tmp_path / "shots", 2)
+    message = one_line_error(f"folder://{folder}?width=640")
+    assert message == (
+        "camera option width: an image folder takes none (a mode is set on live cameras: "
+        "/dev/videoN, aravis://)"
+    )
+    with VirtualCamera(unique_name(), 32, 24) as cam:
+        assert "the virtual camera takes none" in one_line_error(f"virtual://{cam.name}?fps=40")
+        with open_camera(f"virtual://{cam.name}") as source:
+            assert source.mode == CameraMode(32, 24, format="Mono8", clock="render")
+
+
+def test_a_granted_mode_is_compared_with_the_asked_one():
+    asked = CameraOptions(width=1920, height=1200, fps=40.0, format="Mono8", exposure_us=2000.0)
+    granted = CameraMode(1920, 1200, 40.2, "mono8", 2010.0, 0.0)  # drivers round their steps
+    assert mode_mismatches(asked, granted) == []
+    granted = CameraMode(1280, 720, 30.0, "YUYV", None, 0.0)
+    assert mode_mismatches(asked, granted) == [
+        "width 1920 asked, 1280 granted",
+        "height 1200 asked, 720 granted",
+        "fps 40 asked, 30 granted",
+        "format Mono8 asked, YUYV granted",
+        "exposure_us 2000 asked, none granted",
+    ]
+    assert mode_mismatches(CameraOptions(), granted) == []  # nothing asked, nothing to miss
+
+
+class _Granting(CameraSource):
+    """A camera driver's answer, as a source that grants what it is given."""
+
+    OPTIONS = frozenset({"width", "fps", "strict"})
+    KIND = "a test camera"
+
+    def __init__(self, options: CameraOptions, granted: CameraMode) -> None:
+        super().__init__("test://", options)
+        self._granted(granted)
+
+
+def test_a_mode_granted_otherwise_warns_or_with_strict_fails():
+    granted = CameraMode(640, 480, 30.0)
+    source = _Granting(CameraOptions(width=1920, fps=40.0), granted)
+    assert source.mode == granted
+    assert source.warnings == ["width 1920 asked, 640 granted", "fps 40 asked, 30 granted"]
+    with pytest.raises(CameraError) as err:
+        _Granting(CameraOptions(width=1920, strict=True), granted)
+    assert str(err.value) == (
+        "test://: the camera did not grant the mode asked: width 1920 asked, 640 granted"
+    )
+
+
+def test_a_v4l2_buffer_timestamp_is_the_capture_time_when_it_is_on_the_monotonic_clock():
+    arrival = 5_000_000_000_000  # 5000 s after boot
+    assert v4l2_capture_ns(4_999_962.5, arrival) == 4_999_962_500_000  # 37.5 ms old
+    assert v4l2_capture_ns(0.0, arrival) is None  # not set (OpenCV's first frame)
+    assert v4l2_capture_ns(5_000_001.0, arrival) is None  # in the future: another clock
+    assert v4l2_capture_ns(1_700_000_000_000.0, arrival) is None  # realtime: the future here
+    assert v4l2_capture_ns(4_990_000.0, arrival) is None  # 10 s old: not a live frame's time
+
+
+def test_fourcc_text():
+    assert fourcc_text(cv2.VideoWriter_fourcc(*"MJPG")) == "MJPG"
+    assert fourcc_text(cv2.VideoWriter_fourcc(*"GREY")) == "GREY"
+    assert fourcc_text(0) is None
+
+
+def test_a_frame_that_waited_in_the_queue_is_stale():
+    guard = StaleGuard(period_ns=25_000_000)
+    ages_ms = [12, 13, 12.5, 30, 36.9, 37.1, 12, 60, 14]  # the youngest: 12 ms
+    assert [guard.stale(round(a * 1e6)) for a in ages_ms] == [
+        False, False, False, False, False, True, False, True, False,
+    ]  # fmt: skip
+
+
+class _Unplugged(CameraSource):
+    """A live camera that is unplugged after three frames and answers again at the third try
+    to reopen it."""
+
+    def __init__(self) -> None:
+        super().__init__("test://unplugged")
+        self.opened = 1
+        self.tries = 0
+
+    def _read(self):
+        if self._stopping.is_set():
+            return None
+        if self._count == 3 * self.opened:
+            raise CameraLost("test camera: unplugged")
+        time.sleep(0.005)
+        return np.full((4, 4), self.opened, np.uint8)
+
+    def reopen(self) -> None:
+        self.tries += 1
+        if self.tries < 3:
+            raise CameraError("test camera: not there")
+        self.opened += 1
+
+
+async def test_a_lost_camera_is_reopened_when_it_returns_and_both_are_news(monkeypatch):
+    monkeypatch.setattr(FrameGrabber, "REOPEN_S", 0.01)
+    source = _Unplugged()
+    grabber = FrameGrabber(source)
+    seen = []
+    while len(seen) < 5:
+        frame = await grabber.next_frame(timeout=5.0)
+        assert frame is not None
+        seen.append(int(frame.image[0, 0]))
+    grabber.close()
+    assert seen[0] == 1 and seen[-1] == 2
+    news = grabber.take_news()
+    assert [kind for kind, _ in news] == ["camera_lost", "camera_back"]
+    assert news[0][1] == {"reason": "test camera: unplugged"}
+    assert source.tries == 3 and news[1][1]["after_s"] >= 0.02
+    assert grabber.take_news() == []
 
 
 # -- grabber -------------------------------------------------------------------------------

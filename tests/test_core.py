@@ -17,11 +17,13 @@ from udan.edge.decide import DecisionStep
 from udan.edge.fleet import Fleet, FleetState
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.link import CommandReport, DispatchReport
+from udan.edge.protocol import Guidance
 from udan.edge.vision import CarSighting, Scene
 from udan.envs.arena import ArenaConfig
 from udan.envs.rules import WAIT
 from udan.export.runtime import OnnxPolicy
 from udan.models import bundled_policy
+from udan.profile import travelled
 
 MODEL = bundled_policy()
 MS = 1_000_000
@@ -478,6 +480,42 @@ def test_the_guard_stops_a_car_closing_in_on_one_stopped_short_and_only_that_one
     car1_at(50, 0.0, (5, 1), 0.0)
     frame = car1_at(75, 0.3 * cell, (5, 1), 0.0)
     assert core.guard(frame, only_1_moving) == {}
+
+
+def test_the_guard_stops_a_car_in_its_start_delay_before_it_drives_into_a_slipped_leaver(
+    policy: OnnxPolicy, clock: Clock
+) -> None:
+    """Car 2 leaves (7, 1) to the right, car 1 enters (7, 1) from below a cell time later
+    (cells of 200 ms). Car 2 slips: it keeps half its plan's pace and stops half-way, across
+    the corner of car 1's way. The guard predicts each commanded move by its plan at the pace
+    the car kept: car 1, not moving yet, is stopped on the frame that shows car 2's move over,
+    before it sets off (speeds alone see a standing car 1); after a move without a slip,
+    nobody is stopped."""
+    motion = MotionRules(cell_time_s=0.2)
+    cell = GEOMETRY.cell_m
+
+    def run(pace: float) -> list[dict[int, int]]:
+        core = make_core(policy, clock, motion)
+        cells = {11: (8, 1), 12: (7, 1)}
+        core.see(scene(0, cells), ready={1, 2}, now=0)
+        core.commands_for(core.due(scene(0, cells), done, 0), 0)
+        guidance = {
+            1: Guidance(centre((7, 1)), centre((8, 1)), 0, delay=1.0),
+            2: Guidance(centre((7, 2)), centre((7, 1)), 0),
+        }
+        core._targets = {car: g.target[:2] for car, g in guidance.items()}
+        core._took(guidance, all_acked({1: 0, 2: 3}, 0))
+        core.fleet.command.update({1: 0, 2: 3})
+        stops = []
+        for t_ms in (125, 150, 175, 200, 225):
+            right = pace * cell * float(travelled((t_ms - 0.5) / 200, motion.accel_share))
+            frame = scene(t_ms * MS, cells, offsets={12: (right, 0.0)})
+            core.see(frame, ready={1, 2}, now=t_ms * MS)
+            stops.append(core.guard(frame, lambda car, t=t_ms: car == 2 and t >= 200))
+        return stops
+
+    assert run(0.5) == [{}, {}, {}, {1: 5}, {}]
+    assert run(1.0) == [{}] * 5
 
 
 def test_a_recentring_round_whose_commands_all_missed_does_not_count(

@@ -7,12 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from udan.edge import safety
 from udan.edge.decide import DecisionStep, TaskError, task_of
 from udan.edge.fleet import Fleet, FleetState
 from udan.edge.safety import STOP, filter_moves
 from udan.envs.arena import ArenaBatch, ArenaConfig
-from udan.envs.rules import FREE, OBSTACLE, UP, WAIT, WALL, WATER
+from udan.envs.rules import FREE, OBSTACLE, UP, WAIT, WALL, WATER, resolve_moves
 from udan.export.runtime import OnnxPolicy
 from udan.models import bundled_policy
 
@@ -52,22 +51,40 @@ def test_filter_never_two_cars_in_a_cell_nor_swaps(seed: int, cars: int, obstacl
 
 @settings(max_examples=300, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.integers(0, 12))
-def test_filter_commands_a_few_cars_as_the_array_rules_do(seed: int, cars: int, held: int) -> None:
-    # the plain-Python filter for small fleets against the array one for large fleets, with
-    # cars seen off their cells and cells held by others (some off the arena)
+def test_filter_stops_cars_off_their_cells_and_keeps_out_of_held_cells(
+    seed: int, cars: int, held: int
+) -> None:
+    # cars seen off the cell they were sent to, cells held by things not driven (some off the
+    # arena): a stopped car stays and blocks its cell, no car enters a held one, and `dest` is
+    # where every command takes its car
     rng = np.random.default_rng(seed)
     layout = np.zeros((6, 6), np.uint8)
     cells = rng.permutation(36)
     layout.flat[cells[:4]] = OBSTACLE
     start = cells[4 : 4 + cars]
     pos = np.stack([start // 6, start % 6], axis=-1)
-    actions = rng.integers(0, 5, cars)
-    expected = np.where(rng.random((cars, 1)) < 0.8, pos, rng.integers(-1, 6, (cars, 2)))
+    actions = rng.integers(0, 5, len(pos))
+    expected = np.where(rng.random((len(pos), 1)) < 0.8, pos, rng.integers(-1, 6, (len(pos), 2)))
     others = rng.integers(-1, 7, (held, 2))
-    few = safety._filter_few(layout, pos, actions, expected, others)
-    many = safety._filter_many(layout, pos, actions, expected, others)
-    for name in ("commands", "blocked", "stopped", "dest"):
-        assert getattr(few, name).tolist() == getattr(many, name).tolist(), name
+    out = filter_moves(layout, pos, actions, expected=expected, others=others)
+    stopped = (expected[:, 0] >= 0) & (expected != pos).any(axis=1)
+    assert out.stopped.tolist() == stopped.tolist()
+    assert (out.commands[stopped] == STOP).all() and not out.blocked[stopped].any()
+    moves = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0], [0, 0]])  # stop stays too
+    assert (out.dest == pos + moves[out.commands]).all()
+    assert len({tuple(d) for d in out.dest.tolist()}) == len(pos)
+    assert (layout[out.dest[:, 0], out.dest[:, 1]] == FREE).all()
+    entered = {tuple(d) for d, p in zip(out.dest.tolist(), pos.tolist(), strict=True) if d != p}
+    assert not entered & {tuple(cell) for cell in others.tolist()}
+    # and the moves are the rules' own: the stopped cars wait, the held cells are impassable
+    passable = layout == FREE
+    for row, col in others.tolist():
+        if 0 <= row < 6 and 0 <= col < 6:
+            passable[row, col] = False
+    wanted = np.where(stopped, WAIT, actions)
+    rules = resolve_moves(pos[None], wanted[None], passable[None], np.ones((1, len(pos)), bool))
+    assert out.dest.tolist() == rules[0].tolist()
+    assert out.blocked.tolist() == ((wanted != WAIT) & (rules[0] == pos).all(1)).tolist()
 
 
 def test_filter_stops_a_car_seen_off_its_cell_and_respects_other_things() -> None:

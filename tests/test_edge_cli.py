@@ -64,6 +64,10 @@ def fleet(tmp_path: Path) -> Path:
         ("bad_world", "--world must be HOST:PORT"),
         ("bad_tolerance", "a tolerance must be above 0 and below half a cell"),
         ("bad_body", "a car's body must be above 0 and smaller than a cell"),
+        ("bad_cell_time", "--cell-time-ms 0: a move takes some time"),
+        ("bad_profile", "--accel-share 0.5: a share of a move, 0 to 0.5"),
+        ("unknown_camera_option", "unknown camera option 'whidth'"),
+        ("camera_not_answering", "GenICam camera 10.255.255.1 does not answer"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(
@@ -88,6 +92,10 @@ def test_bad_input_is_one_line_and_exit_2(
         "bad_world": {"--world": "nohost"},
         "bad_tolerance": {"--settle-mm": "200"},
         "bad_body": {"--body-mm": "400"},
+        "bad_cell_time": {"--cell-time-ms": "0"},
+        "bad_profile": {"--accel-share": "0.5"},
+        "unknown_camera_option": {"--camera": "/dev/video99?whidth=640"},
+        "camera_not_answering": {"--camera": "aravis://10.255.255.1?fps=40"},  # nobody there
     }[case]
     opts = {**base, **change}
     argv = [x for k, v in opts.items() if v is not None for x in (k, v)]

@@ -61,7 +61,8 @@ def test_surround_prints_the_target_table_too(capsys):
         )
         == 0
     )
-    assert "target score" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "target score" in out and "goal score per agent" in out
 
 
 @pytest.mark.parametrize(

@@ -1,11 +1,10 @@
-"""Leaders, groups and bridge rounds (numpy; shared by training and the edge)."""
+"""Leaders, groups and bridge rounds (shared by training and the edge)."""
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from udan.envs import grouping
 from udan.envs.grouping import (
     communication_matrix,
     form_groups,
@@ -14,6 +13,7 @@ from udan.envs.grouping import (
     nearest,
     neighbour_table,
     neighbour_tables,
+    round_order,
 )
 
 
@@ -31,6 +31,19 @@ def test_leaders_ordered_by_probability_and_absent_agents_ignored():
     prob = np.array([0.6, 0.1, 0.9, 0.99, 0.7])
     groups = form_groups(pos, present, prob, k=2, threshold=0.5)
     assert groups.tolist() == [[2, 1], [4, 2], [0, 1]]
+
+
+def test_a_leader_is_above_the_threshold_in_the_probabilities_own_type():
+    """Exactly at the threshold is not above it, and float32 probabilities meet the threshold as
+    a float32, as numpy compares them (float32(0.3) is not above 0.3 rounded to float32, though
+    it is above the float64 0.3); equal probabilities lead in slot order."""
+    pos = np.array([[0, 0], [0, 1], [0, 2], [5, 5]])
+    present = np.ones(4, bool)
+    prob = np.array([0.5, 0.7, 0.5000001, 0.7], np.float32)
+    assert form_groups(pos, present, prob, 2, 0.5).tolist() == [[1, 0], [3, 2], [2, 1]]
+    thirty = np.full(4, 0.3, np.float32)
+    assert len(form_groups(pos, present, thirty, 2, 0.3)) == 0
+    assert len(form_groups(pos, present, thirty.astype(np.float64), 2, 0.3)) == 4
 
 
 def test_no_leader_or_too_few_agents_means_no_groups():
@@ -86,20 +99,19 @@ def test_hypothetical_groups_and_the_communication_matrix():
 
 
 @pytest.mark.parametrize("distinct_cells", [True, False])
-def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells, monkeypatch):
-    """Distinct cells take the ring search, shared cells the all-pairs path: both must equal a
-    plain sort by (distance, slot)."""
-    monkeypatch.setattr(grouping, "RING_SEARCH_FROM", 0)  # small fleets take the ring path too
+def test_nearest_is_itself_first_then_by_distance_then_slot(distinct_cells):
+    """Small and large fleets, agents on cells of their own or sharing cells, some absent:
+    always a plain sort by (distance, slot)."""
     rng = np.random.default_rng(0)
     for _ in range(150):
-        h, w = (int(v) for v in rng.integers(1, 9, size=2))
-        n = int(rng.integers(1, 30))
+        h, w = (int(v) for v in rng.integers(1, 12, size=2))
+        n = int(rng.integers(1, 30 if rng.random() < 0.8 else 140))
         if distinct_cells:
             n = min(n, h * w)
             cells = rng.choice(h * w, size=n, replace=False)
         else:
             cells = rng.integers(0, h * w, size=n)
-        pos = np.stack([cells // w, cells % w], -1)
+        pos = np.stack([cells // w, cells % w], -1) + rng.integers(-50, 50, size=2)
         present = rng.random(n) < (0.8 if rng.random() < 0.7 else 1.0)  # or all of them
         count = int(rng.integers(1, 10))
         got = nearest(pos, present, count)
@@ -135,13 +147,13 @@ def test_groups_from_a_precomputed_neighbour_table_equal_a_fresh_search():
 
 @pytest.mark.parametrize("agents", [7, 70])
 def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
-    """Training's batched tables: small fleets by one sort of all pairs, large ones by rings,
-    shared cells and absent agents included; -1 columns beyond the agents present."""
+    """Training's batched tables: shared cells and absent agents included; -1 columns beyond
+    the agents present."""
     rng = np.random.default_rng(agents)
     for _ in range(50):
         m, count = int(rng.integers(0, 6)), int(rng.integers(1, 10))
         side = 20 if agents > 64 else int(rng.integers(3, 9))
-        if rng.random() < 0.5:  # distinct cells (rings for large fleets), else shared ones
+        if rng.random() < 0.5:  # distinct cells, else shared ones
             flat = np.argsort(rng.random((m, side * side)), axis=1)[:, :agents]
         else:
             flat = rng.integers(0, side * side, (m, agents))
@@ -153,15 +165,29 @@ def test_many_arenas_at_once_equal_one_arena_at_a_time(agents):
             assert (got[i] == neighbour_table(pos[i], present[i], count)).all()
 
 
-def test_many_groups_get_the_same_rounds_as_the_loop(monkeypatch):
+def test_agents_spread_wider_than_the_search_grid_and_bad_members_are_refused():
+    with pytest.raises(ValueError, match="span more than 2"):
+        nearest(np.array([[0, 0], [3000, 3000]]), np.ones(2, bool), 2)
+    with pytest.raises(ValueError, match="members are slots"):
+        group_rounds(np.array([[0, -1]]))
+
+
+def test_many_groups_get_the_rounds_of_the_rule():
+    """Thousands of groups with long chains of shared members: each group one round after the
+    last round holding any of its members (the rule, written as a plain loop)."""
     rng = np.random.default_rng(5)
-    cases = []
     for _ in range(200):
-        agents, size = int(rng.integers(3, 300)), int(rng.integers(2, 4))
-        count = int(rng.integers(grouping.VECTOR_ROUNDS_FROM, 200))
-        cases.append(np.stack([rng.choice(agents, size, replace=False) for _ in range(count)]))
-    fast = [grouping.group_rounds(groups) for groups in cases]
-    monkeypatch.setattr(grouping, "VECTOR_ROUNDS_FROM", 10**9)  # the loop for every size
-    for groups, got in zip(cases, fast, strict=True):
-        want = grouping.group_rounds(groups)
-        assert [r.tolist() for r in got] == [r.tolist() for r in want]
+        agents, size = int(rng.integers(3, 300)), int(rng.integers(1, 4))
+        count = int(rng.integers(0, 2000))
+        groups = np.stack([rng.choice(agents, size, replace=False) for _ in range(count)])
+        groups = groups.reshape(count, size)
+        last, rounds = {}, []
+        for g, members in enumerate(groups.tolist()):
+            r = max((last.get(m, -1) for m in members), default=-1) + 1
+            rounds.extend([] for _ in range(r + 1 - len(rounds)))
+            rounds[r].append(g)
+            last.update(dict.fromkeys(members, r))
+        assert [r.tolist() for r in group_rounds(groups)] == rounds
+        order, sizes = round_order(groups)
+        assert order.tolist() == [g for r in rounds for g in r]
+        assert sizes.tolist() == list(map(len, rounds))

@@ -17,9 +17,10 @@ from udan.envs.errors import EnvConfigError
 from udan.envs.rules import ACTION_DELTAS, DOWN, LEFT, RIGHT, UP, WAIT
 from udan.firmware_mock import wire
 from udan.firmware_mock.faults import Faults
-from udan.firmware_mock.motor import DEADBAND_M, Drive, Pose, Trajectory, travelled
+from udan.firmware_mock.motor import DEADBAND_M, Drive, Pose, Trajectory
 from udan.hil.motion import LEVELS, CarMotion, bodies_touch, motion_level
 from udan.hil.world import HilWorld
+from udan.profile import travelled
 
 GEOMETRY = ArenaGeometry()
 CELL = GEOMETRY.cell_m

@@ -74,6 +74,8 @@ def test_python_m_from_an_empty_folder(cmd: list[str], tmp_path: Path) -> None:
         ["udan-export", "--help"],
         ["udan-firmware-mock", "--help"],
         ["udan-eval", "--help"],
+        ["udan-sweep", "--help"],
+        ["udan-paper", "--help"],
     ],
 )
 def test_entry_points_from_an_empty_folder(cmd: list[str], tmp_path: Path) -> None:

@@ -21,13 +21,21 @@ import numpy as np
 import pytest
 
 from udan.edge.calibration import VisionError
-from udan.edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera
+from udan.edge.camera import (
+    FRAME_THREAD_NICENESS,
+    CameraError,
+    FrameGrabber,
+    attach_frames,
+    open_camera,
+)
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.perception import (
+    FrameRing,
     FrameTaken,
     Perception,
     PerceptionError,
     ProcessPerception,
+    RingSpec,
     ThreadPerception,
     VisionSettings,
     _Server,
@@ -194,8 +202,39 @@ def test_a_frame_the_camera_reuses_during_its_analysis_gives_no_scene(
     assert taken[:2] == [1, 2] and scenes[0] == 1 and 2 not in scenes
     assert scenes[1] in (3, 4, 5)
     assert server.overwritten == 1
-    *_, captured, dropped = messages[-1]
-    assert len(scenes) + dropped <= captured <= 5
+    counts = messages[-1][-1]
+    assert len(scenes) + counts["dropped"] <= counts["captured"] <= 5
+
+
+def test_the_recorder_ring_copies_a_lent_frame_the_camera_cannot_overwrite() -> None:
+    """The flight recorder's ring remembers lent frames by reference (no copy a frame) and
+    copies the one a decision used out of its slot when asked: the copy keeps the frame after
+    the camera reused the slot, and a frame whose slot was already reused is not kept (counted
+    as not remembered), never recorded half one frame, half another."""
+    with VirtualCamera(unique_name(), 32, 24, slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        ring = FrameRing(RingSpec(unique_name()))
+        try:
+            frames = []
+            for k in (1, 2, 3):
+                cam.publish(np.full((24, 32), k, np.uint8), 1000 + k)
+                frames.append(source.read())
+                ring.analysed(frames[-1])
+            assert all(f.lease is not None for f in frames)
+            assert ring.keep(1002)
+            cam.publish(np.full((24, 32), 4, np.uint8), 1004)  # frame 4 takes frame 1's slot
+            cam.publish(np.full((24, 32), 5, np.uint8), 1005)  # and 5 frame 2's
+            assert not ring.keep(1001) and ring.missed == 1
+            buf, layout = attach_frames(ring.spec.decided)
+            number, _ = layout.find(buf, 1002)
+            image, t_ns = layout.read(buf, number)
+            assert t_ns == 1002 and (image == 2).all()
+            assert layout.latest(buf) == 1  # the reused frame was not kept
+            buf.close()
+        finally:
+            ring.close()
+            source.close()
 
 
 @pytest.mark.parametrize(

@@ -95,6 +95,10 @@ def is_sim(words: list[str]) -> bool:
     return words[0] == "udan-edge" and "--sim" in words
 
 
+def is_replay(words: list[str]) -> bool:
+    return words[0] == "udan-edge" and "--replay" in words
+
+
 def test_every_readme_command_has_a_rule() -> None:
     known = {
         "make",
@@ -105,7 +109,9 @@ def test_every_readme_command_has_a_rule() -> None:
     found = commands()
     assert len(found) >= 11
     for words in found:
-        assert name(words) in known or is_hardware(words) or is_sim(words), words
+        assert name(words) in known or is_hardware(words) or is_sim(words) or is_replay(words), (
+            words
+        )
 
 
 @pytest.mark.parametrize("words", pick(lambda w: w[0] == "make"), ids=" ".join)
@@ -161,6 +167,15 @@ def test_hardware_commands_parse(words: list[str]) -> None:
 def test_edge_sim(words: list[str], tmp_path: Path) -> None:
     proc = run(words, tmp_path)
     assert "commands on time" in proc.stdout + proc.stderr
+
+
+def test_edge_replay(tmp_path: Path) -> None:
+    """The recorded --sim run, then its replay, in the same folder."""
+    (recorded,) = pick(lambda w: is_sim(w) and "--record" in w)
+    (replay,) = pick(is_replay)
+    run(recorded, tmp_path)
+    proc = run(replay, tmp_path)
+    assert "as recorded (100.00 %)" in proc.stdout
 
 
 def test_hil_run(tmp_path: Path) -> None:

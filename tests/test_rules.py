@@ -1,6 +1,7 @@
 """World rules: simultaneous moves, conflicts, walls (the shared 'what a move does')."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -11,7 +12,6 @@ from udan.envs.rules import (
     RIGHT,
     UP,
     WAIT,
-    resolve_few,
     resolve_moves,
 )
 
@@ -112,23 +112,66 @@ def test_never_two_agents_in_a_cell_nor_a_swap(size, n, seed):
             assert out[0, j].tolist() != pos[0, i].tolist(), "swap"
 
 
+def _previous_resolve_moves(pos, actions, passable, present):
+    """resolve_moves as numpy arrays, before the loop moved to udan._kernels (commit b68a9ec,
+    without its cache of the cell numbering): the oracle the C loop is held to."""
+    n_batch, height, width = passable.shape
+    bordered = np.zeros((n_batch, height + 2, width + 2), dtype=bool)
+    bordered[:, 1:-1, 1:-1] = passable
+    cells = (height + 2) * (width + 2)
+    strides = np.array([width + 2, 1])
+    steps, base = ACTION_DELTAS @ strides, np.arange(0, n_batch * cells, cells)[:, None] + width + 3
+    cur = pos @ strides + base
+    dst = cur + steps[actions]
+    dst = np.where(bordered.ravel().take(dst, mode="clip") & present, dst, cur)
+    cur, dst = cur[present], dst[present]
+    if cur.size == 0:
+        return pos.copy()
+    occupant = np.full(bordered.size, -1, dtype=np.int64)
+    occupant[cur] = np.arange(cur.size)
+    moving = dst != cur
+    while moving.any():
+        claims = np.bincount(dst, minlength=bordered.size)
+        other = occupant[dst]
+        blocked = moving & ((claims[dst] > 1) | ((other >= 0) & (dst[other] == cur)))
+        if not blocked.any():
+            break
+        dst = np.where(blocked, cur, dst)
+        moving &= ~blocked
+    done = np.full(present.shape, WAIT)
+    done[present] = np.where(dst != cur, actions[present], WAIT)
+    return pos + ACTION_DELTAS[done]
+
+
 @settings(max_examples=500, deadline=None)
-@given(size=st.integers(2, 5), n=st.integers(1, 14), seed=st.integers(0, 2**32 - 1))
-def test_resolve_few_moves_agents_as_resolve_moves_does(size, n, seed):
-    # crowded arenas: chains, swaps, rotations and several claims on one cell are common
+@given(
+    size=st.integers(1, 6),
+    n=st.integers(1, 30),
+    batch=st.integers(1, 4),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_resolve_moves_moves_agents_as_the_previous_array_code_did(size, n, batch, seed):
+    # crowded arenas: chains, swaps, rotations, several claims on one cell, absent agents
+    # (anywhere on the arena, under others or not), side by side in a batch
     rng = np.random.default_rng(seed)
-    passable = rng.random((size, size)) > 0.15
-    free = np.flatnonzero(passable)
-    n = min(n, free.size)
-    if n == 0:
-        return
-    cells = rng.choice(free, size=n, replace=False)
-    pos = np.stack([cells // size, cells % size], -1)
-    act = rng.integers(0, 5, size=n)
-    want = pos + ACTION_DELTAS[act]
-    inside = ((want >= 0) & (want < size)).all(1)
-    ok = inside & passable[want[:, 0].clip(0, size - 1), want[:, 1].clip(0, size - 1)]
-    dst = np.where(ok[:, None], want, pos)
-    moved = resolve_few(list(map(tuple, pos.tolist())), list(map(tuple, dst.tolist())))
-    out = resolve_moves(pos[None], act[None], passable[None], np.ones((1, n), bool))[0]
-    assert moved == (out != pos).any(1).tolist()
+    height, width = size, int(rng.integers(1, 7))
+    passable = rng.random((batch, height, width)) > 0.15
+    pos = np.zeros((batch, n, 2), np.int64)
+    present = np.zeros((batch, n), bool)
+    for b in range(batch):
+        free = np.flatnonzero(passable[b])
+        count = min(n, free.size)
+        cells = rng.choice(free, size=count, replace=False) if count else free
+        present[b, :count] = rng.random(count) < 0.9
+        pos[b, :count] = np.stack(np.divmod(cells, width), -1)
+        pos[b, count:] = np.stack(np.divmod(rng.integers(0, height * width, n - count), width), -1)
+    actions = rng.integers(0, 5, (batch, n))
+    want = _previous_resolve_moves(pos, actions, passable, present)
+    assert resolve_moves(pos, actions, passable, present).tolist() == want.tolist()
+
+
+def test_an_agent_off_its_arena_is_refused():
+    with pytest.raises(ValueError, match=r"agent 1 at \(0, 5\) is off the 5x5 arena"):
+        step([[0, 0], [0, 5]], [UP, UP])
+    with pytest.raises(IndexError, match="action 7"):
+        step([[0, 0]], [7])

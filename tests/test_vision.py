@@ -561,3 +561,15 @@ def test_a_sighting_is_in_its_true_cell_or_uncertain(lens, tmp_path):
                 assert not seen.uncertain, seen
     if calibrated or abs(camera.k1) < 0.1:  # a strong lens nobody described: all uncertain
         assert confident > 0
+
+
+@pytest.mark.parametrize(("width", "height"), [(640, 480), (1280, 720), (3840, 2160)])
+def test_every_resolution_from_vga_to_4k(width, height):
+    """A camera URL may ask for any mode: the vision's search scale, windows and size gates
+    follow the image, not 1920x1200 (the arena fills the frame's shorter side at each)."""
+    renderer = Renderer(GEOMETRY, CameraModel(width=width, height=height, noise_sigma=2, seed=9))
+    run = Run(Vision(GEOMETRY, car_markers=range(5, 10)), renderer)
+    cars = placements(np.random.default_rng(width), 5)
+    for _ in range(2 * SWEEP):
+        scene = run.frame(cars)
+    check(scene, cars)

@@ -49,6 +49,7 @@ TOKEN = f"test-{secrets.token_urlsafe(18)}"  # fresh every session: found only i
 METRICS = {
     "udan_decision_latency_seconds", "udan_dispatch_latency_seconds", "udan_loop_latency_seconds",
     "udan_frame_to_state_seconds", "udan_vision_seconds", "udan_newest_frame_age_seconds",
+    "udan_frame_age_seconds", "udan_frames_stale", "udan_frames_incomplete",
     "udan_commands_sent", "udan_commands_acked", "udan_commands_late", "udan_commands_missed",
     "udan_commands_not_ready", "udan_cars_present", "udan_cars_joined", "udan_sightings",
     "udan_groups", "udan_leaders", "udan_steps", "udan_frames", "udan_frames_dropped",

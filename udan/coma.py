@@ -25,7 +25,16 @@ from torch.nn import functional as F
 
 from udan.envs import EnvConfigError
 from udan.learner import Actor
-from udan.train import Run, TrainConfig, build, q_values, rollout, unroll
+from udan.train import (
+    Run,
+    TrainConfig,
+    build,
+    env_steps,
+    episode_returns,
+    q_values,
+    rollout,
+    unroll,
+)
 
 
 class Critic(nn.Module):
@@ -175,7 +184,7 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
         optim.step()
 
         losses = {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
-        if run.record(epsilon, losses, episodes):
+        if run.record(epsilon, losses, episode_returns(env, episodes), env_steps(env)):
             extra = {
                 "critic_weights": critic.state_dict(),
                 "critic_target_weights": target_critic.state_dict(),

@@ -11,6 +11,8 @@ import argparse
 import csv
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +38,9 @@ class CellResult:
     """Mean over episodes of the average agent's episode return."""
     target_score: float
     """surround only: the target's episode score (0 for find_water)."""
+    goal_per_agent: float = 0.0
+    """surround only: minus the steps an agent ends next to the target, averaged over agents
+    and episodes (the paper's Table V "goal score", its "average loss score of each agent")."""
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False, repr=False)
     """Each episode's average agent score, in episode order (for paired comparisons)."""
 
@@ -66,14 +71,20 @@ def run_cell(
     while not done.all():
         _, _, done = env.step(policy.act(env))
     per_agent = env.episode_return.sum(axis=1) / agents
+    goal = env.adjacent_steps.sum(axis=1) / -agents if env_name == "arena/surround" else 0.0
     return CellResult(
         agents,
         obstacles,
         episodes,
         float(per_agent.mean()),
         float(env.target_score.mean()),
+        float(np.mean(goal)),
         per_agent,
     )
+
+
+#: Plays ``fn(*args)`` for each args tuple, results in order (:func:`udan.cluster.ray_map`).
+CellRunner = Callable[[Callable, list[tuple]], list]
 
 
 def evaluate(
@@ -84,13 +95,20 @@ def evaluate(
     episodes: int,
     seed: int,
     options: dict | None = None,
+    runner: CellRunner | None = None,
 ) -> list[CellResult]:
-    """Every cell of the agents x obstacles grid."""
-    return [
-        run_cell(env_name, policy, n, m, episodes, seed, options)
+    """Every cell of the agents x obstacles grid, played here one after the other, or by
+    ``runner`` (Ray workers) for a checkpoint's policy: each cell depends only on its seed, so
+    the numbers are the same. Reference policies draw from one generator from cell to cell, so
+    they always play here, in order."""
+    calls = [
+        (env_name, policy, n, m, episodes, seed, options)
         for m in range(obstacles[0], obstacles[1] + 1)
         for n in range(agents[0], agents[1] + 1)
     ]
+    if runner is None or not isinstance(policy, CheckpointPolicy):
+        return [run_cell(*call) for call in calls]
+    return runner(run_cell, calls)
 
 
 def format_table(results: list[CellResult], field: str, title: str) -> str:
@@ -129,10 +147,19 @@ def format_agents_table(results: list[CellResult], title: str) -> str:
 def write_csv(results: list[CellResult], path: Path) -> None:
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["agents", "obstacles", "episodes", "agent_score", "target_score"])
+        writer.writerow(
+            ["agents", "obstacles", "episodes", "agent_score", "target_score", "goal_per_agent"]
+        )
         for r in results:
             writer.writerow(
-                [r.agents, r.obstacles, r.episodes, f"{r.agent_score:.4f}", f"{r.target_score:.4f}"]
+                [
+                    r.agents,
+                    r.obstacles,
+                    r.episodes,
+                    f"{r.agent_score:.4f}",
+                    f"{r.target_score:.4f}",
+                    f"{r.goal_per_agent:.4f}",
+                ]
             )
 
 
@@ -376,6 +403,19 @@ def learning_curves(runs: list[Path], path: Path | None) -> str:
     return "\n".join(lines)
 
 
+@contextmanager
+def _cell_runner(args: argparse.Namespace) -> Iterator[CellRunner | None]:
+    """The cells' runner: Ray workers with ``--workers``/``--address`` (Ray started or joined
+    for the evaluation, and shut down after it), else None (the cells play here)."""
+    if not args.workers and not args.address:
+        yield None
+        return
+    from udan.cluster import ray_map, ray_session
+
+    with ray_session(args.workers, args.address):
+        yield ray_map
+
+
 def _slug(label: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in label).strip("_")
 
@@ -426,12 +466,27 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="UDAN: who leads against what the messages would change (udan.leaders)",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="play the cells of checkpoints on this many Ray workers, a local Ray (0: here, one "
+        "after the other); the numbers are the same (pip install 'udan-edge[scale]')",
+    )
+    parser.add_argument(
+        "--address",
+        default="",
+        help="play the cells on this Ray cluster instead: ray://HOST:PORT, HOST:PORT or auto",
+    )
     args = parser.parse_args(argv)
     from udan.checkpoint import CheckpointError
+    from udan.cluster import ScaleError
 
     try:
         if args.episodes < 1:
             raise EnvConfigError(f"--episodes must be >= 1, got {args.episodes}")
+        if args.workers < 0:
+            raise EnvConfigError(f"--workers must be >= 0, got {args.workers}")
         if args.env is not None and args.env not in env_names():
             raise EnvConfigError(f"unknown env {args.env!r}; known: {', '.join(env_names())}")
         for folder, what in ((args.csv and args.csv.parent, "--csv"), (args.out, "--out")):
@@ -453,29 +508,20 @@ def main(argv: list[str] | None = None) -> int:
             raise EnvConfigError("--csv takes one source; use --out for several")
         probed = _probed_model(args, sources)
         started = time.perf_counter()
-        tables = {
-            label: evaluate(env_name, policy, agents, obstacles, args.episodes, args.seed, options)
-            for label, env_name, policy in sources
-        }
-        ablated = {
-            mode: evaluate(
-                sources[0][1],
-                CheckpointPolicy(probed, mode, args.seed),
-                agents,
-                obstacles,
-                args.episodes,
-                args.seed,
-                options,
-            )
-            for mode in args.ablate
-        }
+        with _cell_runner(args) as runner:
+            cells = (agents, obstacles, args.episodes, args.seed, options, runner)
+            tables = {label: evaluate(env, policy, *cells) for label, env, policy in sources}
+            ablated = {
+                mode: evaluate(env_name, CheckpointPolicy(probed, mode, args.seed), *cells)
+                for mode in args.ablate
+            }
         probes = probe(probed, agents, args.episodes, args.seed) if args.probe else []
         leaders = (
             leader_table(probed, env_name, agents, obstacles, args.episodes, args.seed, **options)
             if args.leaders
             else []
         )
-    except (EnvConfigError, CheckpointError, FolderError) as err:
+    except (EnvConfigError, CheckpointError, FolderError, ScaleError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
     reports = [curves] if curves else []  # markdown tables written to --out/report.md
@@ -492,6 +538,9 @@ def main(argv: list[str] | None = None) -> int:
         if env_name == "arena/surround":
             print()
             print(format_table(results, "target_score", f"{env_name}, {label}: target score"))
+            print()
+            title = f"{env_name}, {label}: goal score per agent (the paper's Table V, lower half)"
+            print(format_table(results, "goal_per_agent", title))
         print()
         if env_name == "arena/hidden_goal":
             config = make_vec(env_name, batch=1, agents=agents[1], obstacles=0).config

@@ -21,8 +21,10 @@ import itertools
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -126,12 +128,22 @@ class TrainConfig:
     """Environment steps between checkpoints (and at the end)."""
     torch_threads: int = 1
     """Intra-op threads for torch (1 is fastest for these small networks on 2 cores)."""
+    workers: int = 0
+    """Ray rollout workers, each playing n_envs episodes at a time while this process learns
+    (0: everything in this one process, without Ray; docs/scaling.md)."""
+    address: str = ""
+    """Ray cluster the workers run on: ray://HOST:PORT, HOST:PORT or auto (empty: a local Ray
+    started for this run; local: the workers in this process, without Ray)."""
+    broadcast_every: int = 1
+    """With workers: updates between two copies of the learner's weights sent to the workers
+    (a rollout starts with the newest copy)."""
 
 
 # A resumed run continues exactly when its config is unchanged; only these may differ (a longer
 # --steps extends a finished run, with the exploration schedule stretched accordingly; checkpoints
-# may come more or less often).
-RESUMABLE_FIELDS = {"steps", "out", "checkpoint_every"}
+# may come more or less often; a run with workers may go on with more, fewer or none, which
+# is never exact: exact resume is a one-process promise).
+RESUMABLE_FIELDS = {"steps", "out", "checkpoint_every", "workers", "address"}
 # What a run whose config.json predates a field used for it, where that is not the default.
 EARLIER_DEFAULTS = {"leader_target": "minmax"}
 
@@ -151,21 +163,56 @@ def field_docs(cls: type) -> dict[str, str]:
 class EpisodeReplay:
     """Ring buffer of whole episodes; observations as float16 (exact for the arena's values)."""
 
+    #: How each field of an episode is stored.
+    DTYPES: ClassVar[dict[str, type]] = {
+        "obs": np.float16,
+        "state": np.float16,
+        "actions": np.int8,
+        "rewards": np.float32,
+        "present": np.bool_,
+        "fresh": np.bool_,
+        "pos": np.int16,
+        "groups": np.int8,
+    }
+
     def __init__(
         self, capacity: int, steps: int, slots: int, obs_dim: int, k: int, state_dim: int
     ) -> None:
         t1 = steps + 1
         self.capacity, self.size, self.next = capacity, 0, 0
-        self.data = {
-            "obs": np.zeros((capacity, t1, slots, obs_dim), np.float16),
-            "state": np.zeros((capacity, t1, state_dim), np.float16),
-            "actions": np.zeros((capacity, steps, slots), np.int8),
-            "rewards": np.zeros((capacity, steps, slots), np.float32),
-            "present": np.zeros((capacity, t1, slots), bool),
-            "fresh": np.zeros((capacity, t1, slots), bool),
-            "pos": np.zeros((capacity, t1, slots, 2), np.int16),
-            "groups": np.full((capacity, t1, slots, k), -1, np.int8),
+        shapes = {
+            "obs": (capacity, t1, slots, obs_dim),
+            "state": (capacity, t1, state_dim),
+            "actions": (capacity, steps, slots),
+            "rewards": (capacity, steps, slots),
+            "present": (capacity, t1, slots),
+            "fresh": (capacity, t1, slots),
+            "pos": (capacity, t1, slots, 2),
+            "groups": (capacity, t1, slots, k),
         }
+        self.data = {key: np.zeros(shape, self.DTYPES[key]) for key, shape in shapes.items()}
+        self.data["groups"][...] = -1
+
+    @classmethod
+    def for_run(
+        cls, cfg: TrainConfig, env: ArenaBatch, spec: ModelSpec, capacity: int = 0
+    ) -> EpisodeReplay:
+        """The replay of a run of ``cfg`` on ``env``'s task with networks of ``spec``, holding
+        ``capacity`` episodes (default: ``cfg.buffer_episodes``)."""
+        return cls(
+            capacity or cfg.buffer_episodes,
+            env.config.max_steps,
+            env.slots,
+            env.spec.size,
+            cfg.group_size,
+            spec.state_dim,
+        )
+
+    @classmethod
+    def compact(cls, episodes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``episodes`` as the replay stores them (what :meth:`add` would keep of them), so a
+        rollout worker sends half the bytes."""
+        return {key: value.astype(cls.DTYPES[key], copy=False) for key, value in episodes.items()}
 
     def add(self, episodes: dict[str, np.ndarray]) -> None:
         n = len(episodes["obs"])
@@ -218,6 +265,17 @@ def rollout(
     record_observation()
     rec["groups"].append(np.full_like(rec["groups"][-1], -1))
     return {k: np.stack(v, axis=1) for k, v in rec.items()}
+
+
+def episode_returns(env: ArenaBatch, episodes: dict[str, np.ndarray]) -> np.ndarray:
+    """Each episode's return per agent it started with (a MAgent game over leaves none present
+    at its end), for the batch ``env`` that just played ``episodes``."""
+    return env.episode_return.sum(1) / np.maximum(episodes["present"][:, 0].sum(1), 1)
+
+
+def env_steps(env: ArenaBatch) -> int:
+    """Environment steps of one rollout of ``env`` (every episode runs to the time limit)."""
+    return env.batch * env.config.max_steps
 
 
 # ---------------------------------------------------------------------------------- update
@@ -340,6 +398,33 @@ def update(
     return losses
 
 
+def update_round(
+    model: MultiAgentQ,
+    target: MultiAgentQ,
+    optim: torch.optim.Optimizer,
+    replay: EpisodeReplay,
+    run: Run,
+    interrupted: Callable[[], bool] = lambda: False,
+) -> dict[str, float]:
+    """The updates the rollout just added to ``replay`` earns: ``updates_per_rollout`` after
+    every ``update_every``-th rollout once the replay holds a batch (fewer if ``interrupted()``
+    turns true); the target network copied every ``target_interval`` updates. Returns the last
+    update's losses (none if no update ran)."""
+    cfg, progress = run.cfg, run.progress
+    losses: dict[str, float] = {}
+    rollouts = progress["episodes"] // cfg.n_envs + 1
+    if replay.size < cfg.batch_episodes or rollouts % cfg.update_every:
+        return losses
+    for _ in range(cfg.updates_per_rollout):
+        if interrupted():
+            break
+        losses = update(model, target, optim, replay.sample(cfg.batch_episodes, run.rng), cfg)
+        progress["updates"] += 1
+        if progress["updates"] % cfg.target_interval == 0:
+            target.load_state_dict(model.state_dict())
+    return losses
+
+
 # ---------------------------------------------------------------------------------- main loop
 def env_options(config: dict) -> dict:
     """The task options of a run's config (a ``TrainConfig`` as a dict) beyond agents and
@@ -438,7 +523,7 @@ class Run:
             self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
         self.writer = _tensorboard(self.out)
-        self.csv_file = (self.out / "progress.csv").open("a", newline="")
+        self.csv_file = self._progress_file()
         self.csv = csv.writer(self.csv_file)
         if self.progress["steps"] == 0:
             self.csv.writerow(
@@ -449,25 +534,47 @@ class Run:
         self.started, self.steps_at_start = time.perf_counter(), self.progress["steps"]
         self.seconds_before = self.progress["seconds"]
 
+    def _progress_file(self):
+        """progress.csv opened for this run's rows: a new run starts it afresh (a run that died
+        before its first checkpoint leaves one behind), a resumed run drops the rows written
+        after its checkpoint, which it plays again."""
+        path = self.out / "progress.csv"
+        if self.progress["steps"] == 0 or not path.is_file():
+            return path.open("w", newline="")
+        with path.open(newline="") as f:
+            rows = list(csv.reader(f))
+        kept = rows[:1] + [r for r in rows[1:] if r and int(r[0]) <= self.progress["steps"]]
+        with path.open("w", newline="") as f:
+            csv.writer(f).writerows(kept)
+        return path.open("a", newline="")
+
     @property
     def running(self) -> bool:
         return self.progress["steps"] < self.cfg.steps
 
-    def epsilon(self) -> float:
-        """Linear decay from eps_start to eps_end over eps_fraction of the run."""
+    def epsilon(self, at_steps: int | None = None) -> float:
+        """Linear decay from eps_start to eps_end over eps_fraction of the run, at ``at_steps``
+        (default: the steps played so far)."""
         cfg = self.cfg
-        frac = min(self.progress["steps"] / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
+        steps = self.progress["steps"] if at_steps is None else at_steps
+        frac = min(steps / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
         return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
-    def record(self, epsilon: float, losses: dict[str, float], episodes: dict) -> bool:
-        """Account for the rollout ``episodes`` just played and log it; True when a checkpoint
-        is due. The return is per agent the episode started with (a MAgent game over leaves
-        none present at its end)."""
-        env, progress = self.env, self.progress
-        per_agent = env.episode_return.sum(1) / np.maximum(episodes["present"][:, 0].sum(1), 1)
-        self.returns = (self.returns + per_agent.tolist())[-200:]
-        progress["steps"] += env.batch * env.config.max_steps
-        progress["episodes"] += env.batch
+    def record(
+        self,
+        epsilon: float,
+        losses: dict[str, float],
+        returns: np.ndarray,
+        steps: int,
+        worker_rates: dict[str, float] | None = None,
+    ) -> bool:
+        """Account for a rollout of ``steps`` environment steps whose episodes returned
+        ``returns`` (:func:`episode_returns`) and log it; True when a checkpoint is due.
+        ``worker_rates``: each rollout worker's own steps per second, for the log."""
+        progress = self.progress
+        self.returns = (self.returns + returns.tolist())[-200:]
+        progress["steps"] += steps
+        progress["episodes"] += len(returns)
         rate = (progress["steps"] - self.steps_at_start) / (time.perf_counter() - self.started)
         mean_return = float(np.mean(self.returns))
         self.csv.writerow(
@@ -482,6 +589,7 @@ class Run:
             ]
         )
         self.csv_file.flush()  # a run is watched while it trains
+        worker_rates = worker_rates or {}
         if self.writer is not None:
             for key, value in {
                 "return": mean_return,
@@ -490,10 +598,13 @@ class Run:
                 **losses,
             }.items():
                 self.writer.add_scalar(f"train/{key}", value, progress["steps"])
+            for name, value in worker_rates.items():
+                self.writer.add_scalar(f"workers/{name}_steps_per_s", value, progress["steps"])
+        per_worker = " (" + ", ".join(f"{n} {v:,.0f}" for n, v in worker_rates.items()) + ")"
         self.log(
             f"\r[{self.cfg.algo}] {progress['steps'] / self.cfg.steps:6.1%} steps "
             f"{progress['steps']:,} return {mean_return:6.2f} eps {epsilon:.2f} "
-            f"{rate:,.0f} steps/s",
+            f"{rate:,.0f} steps/s{per_worker if worker_rates else ''}",
             end="",
         )
         due = progress["steps"] >= self.next_checkpoint or not self.running
@@ -528,6 +639,10 @@ class Run:
 
 def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     """Train until ``cfg.steps``; returns the checkpoint path."""
+    if cfg.workers or cfg.address:  # rollouts on workers (udan.distributed), maybe over Ray
+        from udan.distributed import train_with_workers
+
+        return train_with_workers(cfg, resume=resume, log=log)
     if cfg.algo == "coma":  # on-policy actor-critic: its own loop, same config and checkpoint
         from udan.coma import train_coma
 
@@ -536,14 +651,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     env, model = build(cfg)
     target = copy.deepcopy(model)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    replay = EpisodeReplay(
-        cfg.buffer_episodes,
-        env.config.max_steps,
-        env.slots,
-        env.spec.size,
-        cfg.group_size,
-        model.spec.state_dim,
-    )
+    replay = EpisodeReplay.for_run(cfg, env, model.spec)
     run = Run(cfg, env, resume, ("td_loss", "leader_loss"), log)
     replay_path = run.out / "replay.npz"
     if run.checkpoint is not None:
@@ -557,16 +665,8 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
         epsilon = run.epsilon()
         episodes = rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0)
         replay.add(episodes)
-        losses: dict[str, float] = {}
-        rollouts = run.progress["episodes"] // env.batch + 1
-        if replay.size >= cfg.batch_episodes and rollouts % cfg.update_every == 0:
-            for _ in range(cfg.updates_per_rollout):
-                batch = replay.sample(cfg.batch_episodes, run.rng)
-                losses = update(model, target, optim, batch, cfg)
-                run.progress["updates"] += 1
-                if run.progress["updates"] % cfg.target_interval == 0:
-                    target.load_state_dict(model.state_dict())
-        if run.record(epsilon, losses, episodes):
+        losses = update_round(model, target, optim, replay, run)
+        if run.record(epsilon, losses, episode_returns(env, episodes), env_steps(env)):
             run.save(model, target, optim)
             replay.save(replay_path)
     return run.close()
@@ -606,6 +706,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = vars(parser.parse_args(argv))
     resume, calibrating = args.pop("resume"), args.pop("calibrate")
+    from udan.cluster import ScaleError  # Ray itself is imported only for workers
+
     cfg = TrainConfig(**args)
     try:
         if calibrating:
@@ -621,11 +723,12 @@ def main(argv: list[str] | None = None) -> int:
             raise CheckpointError(f"--resume: {cfg.out} holds no checkpoint.pt")
         ensure_folder(cfg.out, "--out")
         path = train(cfg, resume=resume, log=lambda *a, **k: print(*a, **k, flush=True))
-    except (EnvConfigError, CheckpointError, FolderError) as err:
+    except (EnvConfigError, CheckpointError, FolderError, ScaleError) as err:
         print(f"udan-train: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("\nudan-train: interrupted; the last checkpoint is kept", file=sys.stderr)
+    except KeyboardInterrupt as stop:
+        said = str(stop) or "the last checkpoint is kept"
+        print(f"\nudan-train: interrupted; {said}", file=sys.stderr)
         return 130
     print(f"checkpoint: {path}")
     return 0

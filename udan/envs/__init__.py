@@ -1,7 +1,7 @@
 """Environment registry: ``make(name)`` gives a PettingZoo ParallelEnv, ``make_vec`` B at once.
 
-Backends are imported lazily, so the arena core (numpy only) never needs pettingzoo or magent2
-unless those envs are asked for.
+Backends are imported lazily, so the arena core (numpy and ``udan._kernels``) never needs
+pettingzoo or magent2 unless those envs are asked for.
 """
 
 from __future__ import annotations

@@ -10,7 +10,9 @@ Two tasks on a 9x9 grid, five actions (:mod:`udan.envs.rules`), 50 steps, view r
   time as the agents, under the same conflict rules, fleeing what it sees within
   ``target_view`` (1), so an agent that follows it into the cell it leaves stays next to it.
   An agent next to it (4-neighbour) scores 1 per step; one that is not loses 1 every fourth
-  step. The target's own score drops by 1 for every step some agent is next to it.
+  step. The target's own score drops by 1 for every step some agent is next to it;
+  ``adjacent_steps`` counts, per agent, the steps it ended next to it (the paper's Table V
+  "goal score" is minus their mean over agents: docs/environments.md).
 
 The number of agents and obstacles is drawn per episode; with ``churn`` > 0 an agent may also
 join or leave during an episode (within ``agents``, so churn needs a range). The world is
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from udan import _kernels
 from udan.envs.errors import EnvConfigError, parse_range
 from udan.envs.observe import (
     AGENT_BIT,
@@ -165,6 +168,9 @@ def layout_bits(layout: np.ndarray, view: int) -> np.ndarray:
     return pad_layout(_LAYOUT_BITS[layout], view)
 
 
+_NO_TARGET = np.zeros((0, 2), np.int64)  # find_water has none
+
+
 def scene_codes(
     padded_layout: np.ndarray,
     pos: np.ndarray,
@@ -173,16 +179,21 @@ def scene_codes(
     target: np.ndarray | None = None,
 ) -> np.ndarray:
     """What :func:`udan.envs.observe.observe` reads: the padded layout bits (B, H+2v, W+2v)
-    with every present agent's cell and the surround ``target`` (B, 2) cell marked. The arena
-    core and the edge (which builds the scene from camera markers) both call this."""
-    codes = padded_layout.copy()
-    batch, hp, wp = codes.shape
-    flat = codes.reshape(-1)
-    origin = view * wp + view  # where cell (0, 0) of arena 0 is in the flat padded codes
-    arenas = np.arange(batch)[:, None] * (hp * wp) + origin if batch > 1 else origin
-    flat[(pos[..., 0] * wp + pos[..., 1] + arenas)[present]] |= AGENT_BIT
-    if target is not None:
-        flat[target[:, 0] * wp + target[:, 1] + np.ravel(arenas)] |= OBJECTIVE_BIT
+    with every present agent's cell and the surround ``target`` (B, 2) cell marked (present
+    agents stand on the arena). The arena core and the edge (which builds the scene from
+    camera markers) both call this; one copy and one loop in C (``udan._kernels``)."""
+    present = np.ascontiguousarray(present, bool)
+    codes = np.empty(np.shape(padded_layout), np.uint8)
+    _kernels.scene_codes(
+        np.ascontiguousarray(padded_layout, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        present,
+        _NO_TARGET if target is None else np.ascontiguousarray(target, np.int64),
+        view,
+        AGENT_BIT,
+        OBJECTIVE_BIT,
+        codes,
+    )
     return codes
 
 
@@ -194,20 +205,26 @@ def task_rewards(
     target: np.ndarray | None,
     t: np.ndarray,
 ) -> np.ndarray:
-    """Per-agent rewards (B, N) of one step that has just ended (``t`` counts it).
+    """Per-agent rewards (B, N) of one step that has just ended (``t`` (B,) counts it).
 
     find_water: 1 on a cell in front of a source. surround: 1 next to the target, else -1 every
-    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world.
+    fourth step. Absent agents get 0. Shared by the arena core, the edge and the HIL world; one
+    loop in C (``udan._kernels.task_rewards``).
     """
-    if task == "find_water":
-        front = pos[..., 0] == 1
-        source = layout[np.arange(len(layout))[:, None], 0, pos[..., 1]] == WATER
-        reward = (front & source).astype(np.float32)
-    else:
-        adjacent = np.abs(pos - target[:, None]).sum(-1) == 1
-        penalty = (np.asarray(t) % 4 == 0)[:, None] & ~adjacent
-        reward = adjacent.astype(np.float32) - penalty.astype(np.float32)
-    return np.where(present, reward, 0.0).astype(np.float32)
+    present = np.ascontiguousarray(present, bool)
+    out = np.empty(present.shape, np.float32)
+    find_water = task == "find_water"
+    _kernels.task_rewards(
+        find_water,
+        np.ascontiguousarray(layout, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        present,
+        _NO_TARGET if find_water else np.ascontiguousarray(target, np.int64),
+        np.ascontiguousarray(t, np.int64),
+        WATER,
+        out,
+    )
+    return out
 
 
 class ArenaBatch:
@@ -232,6 +249,7 @@ class ArenaBatch:
         self.episode_return = np.zeros((b, n), dtype=np.float32)
         self.target = np.zeros((b, 2), dtype=np.int64)
         self.target_score = np.zeros(b, dtype=np.float32)
+        self.adjacent_steps = np.zeros((b, n), dtype=np.int64)
         self.t = np.zeros(b, dtype=np.int64)
         self.joined = np.zeros((b, n), dtype=bool)
         self.left = np.zeros((b, n), dtype=bool)
@@ -285,6 +303,7 @@ class ArenaBatch:
         self.last_reward[idx] = 0.0
         self.episode_return[idx] = 0.0
         self.target_score[idx] = 0.0
+        self.adjacent_steps[idx] = 0
         self.t[idx] = 0
         self.joined[idx] = agent_valid
         self.left[idx] = False
@@ -329,8 +348,9 @@ class ArenaBatch:
             self.config.task, self.layout, self.pos, self.present, self.target, self.t
         )
         if self.config.task == "surround":
-            adjacent = np.abs(self.pos - self.target[:, None]).sum(-1) == 1
-            self.target_score -= (adjacent & self.present).any(axis=1)
+            adjacent = (np.abs(self.pos - self.target[:, None]).sum(-1) == 1) & self.present
+            self.target_score -= adjacent.any(axis=1)
+            self.adjacent_steps += adjacent
         return reward
 
     def flee_scores(self) -> np.ndarray:
@@ -395,6 +415,7 @@ class ArenaBatch:
                 self.last_action[b, slot] = -1
                 self.last_reward[b, slot] = 0.0
                 self.episode_return[b, slot] = 0.0
+                self.adjacent_steps[b, slot] = 0
                 self.joined[b, slot] = True
             elif not join and count > max(cfg.agents[0], 1):
                 slot = rng.choice(np.flatnonzero(self.present[b]))

@@ -8,12 +8,12 @@ and calls :func:`observe`, so a policy sees the same numbers on real cars as in 
 
 from __future__ import annotations
 
-import functools
 from dataclasses import asdict, dataclass
 from typing import ClassVar
 
 import numpy as np
 
+from udan import _kernels
 from udan.envs.rules import ACTIONS, N_ACTIONS
 
 #: Bumped whenever the layout or meaning of an observation changes; exported models carry it.
@@ -22,6 +22,7 @@ OBS_SPEC_VERSION = 1
 #: Spatial planes, in order. Bits of the packed cell code used by :func:`observe`.
 CHANNELS: tuple[str, ...] = ("blocked", "agents", "objective")
 BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT = 1, 2, 4
+_BITS = np.array([BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT], dtype=np.uint8)  # per channel
 
 FEATURES: tuple[str, ...] = (
     "row",
@@ -77,37 +78,31 @@ def observe(
     last_action: np.ndarray,
     last_reward: np.ndarray,
     present: np.ndarray,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Observations (B, N, spec.size) float32; rows of absent agents are zero.
+    """Observations (B, N, spec.size) float32 (into ``out`` if given); rows of absent agents are
+    zero.
 
     ``padded_codes`` (B, H + 2v, W + 2v) uint8 holds the OR of ``*_BIT`` flags per cell, with
     every present agent's own cell carrying ``AGENT_BIT`` (cleared here from its own window).
-    ``last_action`` is -1 before an agent's first move.
+    ``last_action`` is -1 before an agent's first move. One pass per agent, window and
+    features (``udan._kernels.observe``); a present agent stands on its arena (IndexError
+    otherwise).
     """
-    n_batch, n_agents = present.shape
-    win = spec.window
-    hp, wp = padded_codes.shape[1:]
-    base = pos[..., 0] * wp + pos[..., 1]
-    if n_batch > 1:
-        base += (np.arange(n_batch) * (hp * wp))[:, None]
-    cells = np.take(padded_codes, base[..., None] + _window_offsets(win, wp))  # (B, N, win*win)
-    cells[..., (win * win) // 2] &= ~np.uint8(AGENT_BIT)
-    out = np.empty((n_batch, n_agents, spec.size), dtype=np.float32)
-    spatial = out[..., : spec.spatial_size].reshape(n_batch, n_agents, len(CHANNELS), win * win)
-    np.not_equal(cells[..., None, :] & _BITS[:, None], 0, out=spatial)
-    feat = out[..., spec.spatial_size :]
-    np.divide(pos, (max(spec.height - 1, 1), max(spec.width - 1, 1)), out=feat[..., :2])
-    np.equal(last_action[..., None], _ACTION_IDS, out=feat[..., 2 : 2 + N_ACTIONS])
-    feat[..., -1] = last_reward
-    out *= present[..., None]
+    present = np.ascontiguousarray(present, bool)
+    if out is None:
+        out = np.empty((*present.shape, spec.size), np.float32)
+    _kernels.observe(
+        np.ascontiguousarray(padded_codes, np.uint8),
+        np.ascontiguousarray(pos, np.int64),
+        np.ascontiguousarray(last_action, np.int64),
+        np.ascontiguousarray(last_reward, np.float32),
+        present,
+        _BITS,
+        spec.view,
+        AGENT_BIT,
+        max(spec.height - 1, 1),
+        max(spec.width - 1, 1),
+        out,
+    )
     return out
-
-
-_BITS = np.array([BLOCKED_BIT, AGENT_BIT, OBJECTIVE_BIT], dtype=np.uint8)
-_ACTION_IDS = np.arange(N_ACTIONS)
-
-
-@functools.cache
-def _window_offsets(win: int, padded_width: int) -> np.ndarray:
-    """Flat offsets of a ``win`` x ``win`` window's cells from its top-left cell."""
-    return (np.arange(win)[:, None] * padded_width + np.arange(win)[None, :]).ravel()

@@ -1,18 +1,17 @@
 """What a move does: the grid world rules shared by training, the edge safety filter and HIL.
 
-Every function here is batched over arenas (axis 0) and agents (axis 1), numpy only, so the
-vectorised training core, the edge runtime (one arena) and the HIL world all run the same code;
-:func:`resolve_few` is the conflict rules once more in plain Python, for the edge's few cars
-(tests hold it to :func:`resolve_moves`' answers).
+Every function here is batched over arenas (axis 0) and agents (axis 1), so the vectorised
+training core, the edge runtime (one arena) and the HIL world all run the same code; the
+conflict rules' fixed point is a loop in C (``udan._kernels``), whatever the number of agents.
 
 Positions are ``(row, col)`` integer pairs; row 0 is the top of the camera image.
 """
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
+
+from udan import _kernels
 
 ACTIONS: tuple[str, ...] = ("up", "down", "left", "right", "wait")
 UP, DOWN, LEFT, RIGHT, WAIT = range(len(ACTIONS))
@@ -62,74 +61,23 @@ def resolve_moves(
       rotation of three or more agents, since no two cars are ever in one cell.
 
     ``pos`` (B, N, 2) int64, ``actions`` (B, N), ``passable`` (B, H, W) bool, ``present``
-    (B, N). Absent agents (``present`` False) neither move nor block. Cells are numbered flat
-    on the arenas bordered by one impassable cell, side by side, so a move is one addition, a
-    move off the arena lands on the border, and every test below is one array operation (the
-    edge calls this for 5 cars every step, training for thousands of agents).
+    (B, N). Absent agents (``present`` False) neither move nor block; present ones stand on
+    their arena (ValueError otherwise). Each round of the fixed point looks at every move
+    before it blocks any, so the outcome does not depend on the agents' order. One loop per
+    arena over cells numbered on the arena bordered by one impassable cell, so a move is one
+    addition and a move off the arena lands on the border (``udan._kernels.resolve_moves``:
+    the edge calls this for 5 cars every step, training for thousands of agents).
     """
-    n_batch, height, width = passable.shape
-    bordered = np.zeros((n_batch, height + 2, width + 2), dtype=bool)
-    bordered[:, 1:-1, 1:-1] = passable
-    strides, steps, base = _numbering(n_batch, height, width)
-    cur = pos @ strides + base
-    dst = cur + steps[actions]
-    dst = np.where(bordered.ravel().take(dst, mode="clip") & present, dst, cur)
-    cur, dst = cur[present], dst[present]
-    if cur.size == 0:
-        return pos.copy()
-    occupant = np.full(bordered.size, -1, dtype=np.int64)
-    occupant[cur] = np.arange(cur.size)
-    moving = dst != cur
-    while moving.any():
-        claims = np.bincount(dst, minlength=bordered.size)
-        other = occupant[dst]
-        # a claimed cell held by several, or a swap with the cell's occupant
-        blocked = moving & ((claims[dst] > 1) | ((other >= 0) & (dst[other] == cur)))
-        if not blocked.any():
-            break
-        dst = np.where(blocked, cur, dst)
-        moving &= ~blocked
-    done = np.full(present.shape, WAIT)
-    done[present] = np.where(dst != cur, actions[present], WAIT)
-    return pos + ACTION_DELTAS[done]
-
-
-def resolve_few(cur: list[tuple[int, int]], dst: list[tuple[int, int]]) -> list[bool]:
-    """Which of a few agents on the cells ``cur`` get to the cells ``dst`` they head for (a
-    passable cell next to theirs, or their own: a wait): :func:`resolve_moves`' conflict rules
-    and fixed point for one arena, in plain Python. The edge filters ~5 cars a step, where
-    resolve_moves' ~40 array operations cost ~40 µs and this a few."""
-    moved = [d != c for c, d in zip(cur, dst, strict=True)]
-    if True not in moved:
-        return moved
-    dst = list(dst)
-    occupant = {cell: i for i, cell in enumerate(cur)}
-    while True:
-        shared = len(set(dst)) < len(dst)  # some cell is claimed twice (rare: count then)
-        # blocked: a claimed cell held by several, or a swap with the cell's occupant (an agent
-        # is its own occupant when its cell is empty: never a swap, as it moves)
-        blocked = [
-            i
-            for i, d in enumerate(dst)
-            if moved[i] and ((shared and dst.count(d) > 1) or dst[occupant.get(d, i)] == cur[i])
-        ]
-        if not blocked:
-            return moved
-        for i in blocked:
-            dst[i], moved[i] = cur[i], False
-
-
-@functools.lru_cache(maxsize=64)
-def _numbering(n_batch: int, height: int, width: int) -> tuple[np.ndarray, ...]:
-    """For :func:`resolve_moves`: the (row, col) strides of the bordered cell numbers, each
-    action's step in them, and each arena's offset plus the border (B, 1)."""
-    strides = np.array([width + 2, 1])
-    cells = (height + 2) * (width + 2)
-    base = np.arange(0, n_batch * cells, cells)[:, None] + width + 3
-    numbering = strides, ACTION_DELTAS @ strides, base
-    for array in numbering:
-        array.flags.writeable = False
-    return numbering
+    pos = np.ascontiguousarray(pos, np.int64)
+    out = np.empty_like(pos)
+    _kernels.resolve_moves(
+        pos,
+        np.ascontiguousarray(actions, np.int64),
+        np.ascontiguousarray(passable, bool),
+        np.ascontiguousarray(present, bool),
+        out,
+    )
+    return out
 
 
 def manhattan(a: np.ndarray, b: np.ndarray) -> np.ndarray:

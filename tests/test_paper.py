@@ -1,0 +1,143 @@
+"""udan-paper at a tiny size: the paper's numbers beside ours, ours equal to udan-eval's, "not
+trained yet" wherever no model is committed, the same file twice, a MAgent model's row, and the
+committed docs/results.md made from the committed models."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_train import TINY, one_line_exit_2, quiet, run_cli
+
+from udan.checkpoint import load_model
+from udan.evaluate import CheckpointPolicy, evaluate
+from udan.paper import NOT_TRAINED, TABLE_II, TABLE_V_AGENT, TABLE_V_GOAL, TABLE_VI, main
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+
+
+def _models(tmp_path: Path, *folders: str) -> Path:
+    """A models folder holding only ``folders`` of the committed ones (linked, not copied)."""
+    models = tmp_path / "models"
+    for folder in folders:
+        (models / folder).parent.mkdir(parents=True, exist_ok=True)
+        (models / folder).symlink_to(MODELS / folder, target_is_directory=True)
+    return models
+
+
+def _row(text: str, title: str, first: str) -> list[float]:
+    """The numbers of the row starting with ``| first |`` in the table under ``**title**``."""
+    table = text[text.index(f"**{title}**") :]
+    row = next(line for line in table.splitlines() if line.startswith(f"| {first} |"))
+    return [float(v) for v in re.findall(r"-?\d+\.\d+", row.removeprefix(f"| {first} |"))]
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory) -> tuple[Path, str]:
+    tmp = tmp_path_factory.mktemp("paper")
+    models = _models(tmp, "surround", "hidden_goal")
+    out = tmp / "docs" / "results.md"
+    assert main(["--models", str(models), "--out", str(out), "--episodes", "3"]) == 0
+    return out, out.read_text()
+
+
+def test_table_v_is_udan_eval_beside_the_paper(written):
+    _, text = written
+    model, _ = load_model(MODELS / "surround" / "checkpoint.pt")
+    cells = evaluate("arena/surround", CheckpointPolicy(model), (1, 5), (0, 0), 3, seed=0)
+    row = _row(text, "Table V: average agent score", "0")
+    assert row[0::2] == pytest.approx([c.agent_score for c in cells], abs=0.006)
+    assert row[1::2] == pytest.approx(TABLE_V_AGENT[0], abs=0.0006)  # N = 5: no paper column
+    goal = _row(text, "Table V: goal score per agent", "0")
+    assert goal[0::2] == pytest.approx([c.goal_per_agent for c in cells], abs=0.006)
+    assert goal[1::2] == pytest.approx(TABLE_V_GOAL[0], abs=0.0006)
+    means = _row(text, "Table V: average agent score", "mean")
+    paper = np.mean(list(TABLE_V_AGENT.values()), axis=0)
+    assert means[1::2] == pytest.approx(paper, abs=0.006)
+    assert "the paper has no N = 5 column" in text
+
+
+def test_what_is_not_committed_is_not_trained_yet_never_a_number(written):
+    _, text = written
+    fig7 = text[text.index("**Fig. 7: average agent score by N**") :]
+    for label in ("QMIX", "VDN", "COMA"):
+        row = next(line for line in fig7.splitlines() if line.startswith(f"| {label} |"))
+        assert row.count(NOT_TRAINED) == 5 and not re.search(r"\d\.\d", row)
+    table_vi = text[text.index("## Table VI") : text.index("## The positive control")]
+    assert f"UDAN: {NOT_TRAINED}" in table_vi
+    assert f"{TABLE_VI[14][0]:.2f}" not in table_vi  # nothing of ours to set beside it
+    magent = text[text.index("## Table II") :]
+    rows = [line for line in magent.splitlines() if line.startswith("| pursuit |")]
+    assert len(rows) == 5 and all(NOT_TRAINED in row for row in rows)
+    assert f"{TABLE_II['qmix']['15']:g} (trained on 15)" in magent
+    assert "Fig. 5 (learning curves): not trained yet." in magent
+
+
+def test_the_control_and_the_figures_are_written(written):
+    out, text = written
+    control = text[text.index("## The positive control") : text.index("## Table II")]
+    assert "| proven no-message bound | 14.45 |" in control
+    assert "UDAN with shuffled messages" in control
+    assert "| UDAN, no messages |" in control
+    figures = out.parent / "results"
+    assert (figures / "fig7_surround.png").stat().st_size > 10_000
+    assert "![Fig. 7](results/fig7_surround.png)" in text
+
+
+@pytest.mark.slow
+def test_the_same_models_give_the_same_file(written, tmp_path):
+    out, text = written
+    models = out.parents[1] / "models"
+    again = tmp_path / "docs" / "results.md"
+    assert main(["--models", str(models), "--out", str(again), "--episodes", "3"]) == 0
+    assert again.read_text() == text
+
+
+def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
+    from udan.train import TrainConfig, train
+
+    models = _models(tmp_path, "hidden_goal")
+    queue = {"agents": "1-3", "obstacles": "0", "map_size": 8, "max_steps": 12}
+    tiny = {**TINY, "leader_explore": 0.3}
+    train(
+        TrainConfig(
+            env="magent/queue", steps=480, out=str(models / "magent_queue"), **queue, **tiny
+        ),
+        log=quiet,
+    )
+    out = tmp_path / "results.md"
+    assert main(["--models", str(models), "--out", str(out), "--episodes", "2"]) == 0
+    text = out.read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| queue | UDAN |"))
+    assert "| 1-3 | 1-3 |" in row and NOT_TRAINED not in row
+    assert "curves only (Fig. 5)" in row
+    assert "| magent_queue |" in text and (tmp_path / "results" / "fig5_curves.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--episodes", "1"], "must be >= 2"),
+        (["--models", "{tmp}/none"], "no checkpoint.pt under"),
+        (["--out", "{tmp}"], "is a folder, not a file"),
+        (["--out", "/proc/version/results.md"], "cannot create folder"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, fragment):
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    one_line_exit_2(run_cli(*args, tool="udan-paper"), fragment)
+
+
+def test_docs_results_is_made_from_the_committed_models():
+    """Retraining a model means running ``make paper``: the file lists what it was made from."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    listed = dict(re.findall(r"\| `models/(\S+)` \(\w+\) \| `([0-9a-f]{16})` \|", text))
+    for folder, sha in listed.items():
+        path = MODELS / folder / "checkpoint.pt"
+        assert hashlib.sha256(path.read_bytes()).hexdigest()[:16] == sha, folder
+    committed = {str(p.parent.relative_to(MODELS)) for p in MODELS.rglob("checkpoint.pt")}
+    assert set(listed) == committed
