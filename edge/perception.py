@@ -190,7 +190,14 @@ class FrameRing:
         self._period_ns = round(1e9 / spec.rate) if spec.rate > 0 else 0
 
     def analysed(self, frame: Frame) -> None:
-        """A frame the vision is done with: remember it; copy it for the previews when due."""
+        """A frame the vision is done with: :meth:`remember` it, then :meth:`preview` it."""
+        if self.remember(frame):
+            self.preview(frame)
+
+    def remember(self, frame: Frame) -> bool:
+        """Remember a frame the vision is done with, before its scene leaves: the edge may ask
+        to :meth:`keep` it as soon as it has the scene (in the perception process the ask is
+        read by another thread). False for a frame of another size than the first."""
         image = frame.image
         with self._lock:
             if self._decided is None:
@@ -201,11 +208,16 @@ class FrameRing:
                 self._previews = FrameWriter(self.spec.previews, width, height, PREVIEW_SLOTS)
             layout = self._decided.layout
             if image.shape != (layout.height, layout.width):
-                return
+                return False
             self._frames.append(frame)
-            due = self._period_ns and frame.t_capture_ns >= self._preview_due_ns
-        owned = frame.owned() if due else None
-        if owned is not None:
+            return True
+
+    def preview(self, frame: Frame) -> None:
+        """Copy a remembered frame for the previews when one is due."""
+        if not self._period_ns or frame.t_capture_ns < self._preview_due_ns:
+            return
+        owned = frame.owned()
+        if owned is not None and self._previews is not None:
             self._preview_due_ns = max(self._preview_due_ns + self._period_ns, frame.t_capture_ns)
             self._previewed += 1
             self._previews.publish(self._previewed, frame.t_capture_ns, owned.image)
@@ -727,11 +739,12 @@ class _Server:
             if not frame.intact():
                 self.overwritten += 1
                 continue
+            remembered = self.ring is not None and self.ring.remember(frame)
             self.send_scene(scene)
             if self.annotator is not None:
                 self._annotate(frame, scene)
-            if self.ring is not None:
-                self.ring.analysed(frame)
+            if remembered:
+                self.ring.preview(frame)
 
     def _annotate(self, frame: Frame, scene: Scene) -> None:
         """The frame to the annotator; its newest thumbnail to the edge if there is a new one

@@ -206,6 +206,54 @@ def test_a_frame_the_camera_reuses_during_its_analysis_gives_no_scene(
     assert len(scenes) + counts["dropped"] <= counts["captured"] <= 5
 
 
+def test_a_frame_is_remembered_for_the_recorder_before_its_scene_leaves(
+    arena_image: np.ndarray,
+) -> None:
+    """The edge asks the perception process to keep a decision's frame as soon as it has the
+    scene, and a thread of the perception process reads the ask at once, whatever its main
+    thread is doing: the frame is remembered before the scene leaves, so even a main thread
+    held up right after sending (here 50 ms) has every asked frame kept, none "not
+    remembered"."""
+    with VirtualCamera(unique_name(), slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        grabber = FrameGrabber(source)
+        vision = VisionSettings(GEOMETRY, tuple(CARS)).build()
+        edge, there = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        ring = FrameRing(RingSpec(unique_name()))
+        server = _Server(there, grabber, vision, ring)
+        send_scene = server.send_scene
+
+        def send_then_stall(scene: Scene) -> None:
+            send_scene(scene)
+            time.sleep(0.05)
+
+        server.send_scene = send_then_stall
+        serving = threading.Thread(target=server.serve)
+        serving.start()
+        counts = {}
+        try:
+            for _ in range(4):
+                cam.publish(arena_image)
+                while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                    pass
+                edge.send(pickle.dumps(("keep", message[1].t_capture_ns)))
+                time.sleep(0.1)
+            edge.send(pickle.dumps(("skip_before", 0)))  # a message back with the counts
+            cam.publish(arena_image)
+            while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                pass
+            counts = message[-1]
+        finally:
+            edge.send(pickle.dumps(("stop",)))
+            serving.join(5.0)
+            grabber.close()
+            ring.close()
+            edge.close()
+            there.close()
+    assert counts["not_remembered"] == 0 and ring.missed == 0
+
+
 def test_the_recorder_ring_copies_a_lent_frame_the_camera_cannot_overwrite() -> None:
     """The flight recorder's ring remembers lent frames by reference (no copy a frame) and
     copies the one a decision used out of its slot when asked: the copy keeps the frame after
