@@ -597,6 +597,7 @@ class ControlCore:
             "slow_sends": report.slow_sends,
             "late_sends": report.late_sends,
             "late_executions": late,
+            "moving": sum(c not in state.uncertain for c in state.moving),  # period ran out
             "uncertain": len(state.uncertain),
             "uncertain_cars": sorted(state.uncertain),
             "uncalibrated": int(not state.calibrated),

@@ -19,6 +19,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from udan.edge.vision import KEPT_VISITS
+
 if TYPE_CHECKING:
     from udan.edge.shell import EdgeShell
 
@@ -80,12 +82,14 @@ class EpisodePlayer:
             info = await world_request(plan.world, {"op": "episode", "index": index})
             if info.get("done"):
                 break
-            core.new_episode(time.monotonic_ns())
+            laid_out = time.monotonic_ns()
+            core.new_episode(laid_out)
             cars = set(info["cars"])
-            if not await self._await_fleet(shell, cars):
+            if not await self._await_fleet(shell, cars, laid_out):
                 shell.telemetry.event("episode_skipped", index=index, cars=sorted(cars))
                 index += 1
                 continue
+            slots = {str(c): s for c, s in sorted(core.fleet.slot.items())}
             steps = await shell.drive(plan.steps)
             if steps < plan.steps:  # stopped mid-episode: not a result
                 shell.telemetry.event("episode_cut", index=index, steps=steps)
@@ -99,23 +103,28 @@ class EpisodePlayer:
                     "steps": steps,
                     "returns": returns,
                     "score": sum(returns.values()) / len(returns) if returns else None,
+                    "slots": slots,
                     "t_ns": time.monotonic_ns(),
                 }
             )
             index += 1
 
-    async def _await_fleet(self, shell: EdgeShell, cars: set[int]) -> bool:
+    async def _await_fleet(self, shell: EdgeShell, cars: set[int], laid_out_ns: int) -> bool:
         """Frames until exactly the episode's cars are in the fleet (joined, seen) and the
-        vision has swept the whole image, calibrated, since the layout changed (its obstacle
-        and water markers are read by the sweep, a tile per frame, and a tile swept before the
-        camera model was fitted places its markers in no cell: the first episode's first step
-        once drove a car into an obstacle it had not placed yet)."""
+        vision has read the new layout: ``KEPT_VISITS`` sweeps of the whole image, calibrated,
+        in frames captured after the layout changed at ``laid_out_ns``. A marker is placed at
+        its tile's next visit, but one taken away leaves the map only after that many visits
+        without it (and a tile swept before the camera model was fitted places its markers in
+        no cell): after one sweep, the first step of most episodes still saw the last
+        episode's obstacles, walls and water, and decided on them (the simulation it is
+        compared with did not); the first step of the morning's seed-13 run, before the
+        camera was fitted, drove a car into an obstacle it had not placed yet."""
         deadline = time.monotonic() + self.plan.join_timeout_s
-        frames = 0
+        needed, frames = KEPT_VISITS * shell.perception.sweep_frames, 0
         while not shell.stop.is_set() and time.monotonic() < deadline:
             scene = await shell.next_scene()
-            frames += scene is not None and scene.calibrated
-            if set(shell.core.fleet.slot) == cars and frames > shell.perception.sweep_frames:
+            frames += scene is not None and scene.calibrated and scene.t_capture_ns >= laid_out_ns
+            if set(shell.core.fleet.slot) == cars and frames > needed:
                 return True
         return False
 

@@ -83,6 +83,10 @@ body) is rejected at a glance instead of decoded."""
 TEMPLATE_MATCH = 0.9
 """Normalised correlation with its last decoded look above which a static marker is taken to be
 unchanged, and painted out instead of decoded again."""
+KEPT_VISITS = 2
+"""A tile's static cells are those its last this many visits found: a detection missed once does
+not free a cell, and so a marker taken away leaves the map only after this many sweeps without
+it (a new one is placed at its tile's next visit)."""
 OVERLAP_LINES = 12
 """Sweep tiles overlap by the frame height over this: more than the largest marker's half
 extent (a calibration marker, or a car marker printed twice as large, near a tilted camera)."""
@@ -282,7 +286,7 @@ class Vision:
         self._tiles: list[tuple[tuple[int, int, int, int], tuple[int, int, int, int]]] = []
         """Sweep tiles: (core, core plus overlap) as x0, y0, x1, y1."""
         self._static: list[list[frozenset[tuple[str, tuple[int, int]]]]] = []
-        """Per sweep tile, the static cells (kind, cell) its last two visits found."""
+        """Per sweep tile, the static cells (kind, cell) its last ``KEPT_VISITS`` visits found."""
         self._known: list[list[_Known]] = []
         """Per sweep tile, the cell markers its last visit decoded or recognised."""
         self._cells: dict[str, frozenset[tuple[int, int]]] | None = None
@@ -301,7 +305,7 @@ class Vision:
     @property
     def sweep_frames(self) -> int:
         """Frames one sweep of the whole image takes: a layout that changed is fully read after
-        this many frames (cars, tracked, are found sooner)."""
+        ``KEPT_VISITS`` sweeps (markers added after one; cars, tracked, are found sooner)."""
         return self._sweep_tiles[0] * self._sweep_tiles[1]
 
     @property
@@ -341,7 +345,7 @@ class Vision:
                     (ext[0], ext[1], ext[2], middle + half),
                     (ext[0], middle - half, ext[2], ext[3]),
                 ]
-        self._static = [[frozenset(), frozenset()] for _ in self._tiles]
+        self._static = [[frozenset()] * KEPT_VISITS for _ in self._tiles]
         self._known = [[] for _ in self._tiles]
 
     # -- per-frame stages -----------------------------------------------------------------
@@ -390,9 +394,9 @@ class Vision:
                 if ok:
                     k.cell = (_KIND_OF_ID[k.marker], (row, col))
         cells = frozenset(k.cell for k in known if k.cell is not None)
-        if cells != self._static[t][0]:
+        if cells != self._static[t][0]:  # the visit dropped: the union changes unless equal
             self._cells = None
-        self._static[t] = [self._static[t][1], cells]
+        self._static[t] = [*self._static[t][1:], cells]
         return corners_seen
 
     @staticmethod
@@ -493,7 +497,7 @@ class Vision:
         changed, moved = self.fit.observe(marker, corners)
         if moved:
             self._camera_moved = True
-            self._static = [[frozenset(), frozenset()] for _ in self._tiles]
+            self._static = [[frozenset()] * KEPT_VISITS for _ in self._tiles]
             self._known = [[] for _ in self._tiles]
             self._cells = None
         return changed
@@ -502,7 +506,7 @@ class Vision:
         if self._cells is None:
             found: dict[str, set[tuple[int, int]]] = {kind: set() for kind in CELL_KIND_IDS}
             for visits in self._static:
-                for kind, cell in visits[0] | visits[1]:
+                for kind, cell in frozenset().union(*visits):
                     found[kind].add(cell)
             self._cells = {kind: frozenset(c) for kind, c in found.items()}
         return self._cells

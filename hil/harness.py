@@ -179,12 +179,34 @@ def forged_datagrams(count: int, car_ids: Sequence[int], seed: int) -> list[tupl
     return out
 
 
-def simulate(task: str, model: Path, episodes: Sequence[Episode], steps: int) -> list[float]:
-    """Pure-simulation scores (average agent return) of the same policy on the same layouts."""
+def slot_order(record: dict[str, Any]) -> list[int] | None:
+    """The cars of an episode record in the order of the policy slots the edge gave them at
+    its first step (None: a record without slots)."""
+    slots = record.get("slots")
+    return [int(c) for c, _ in sorted(slots.items(), key=lambda kv: kv[1])] if slots else None
+
+
+def simulate(
+    task: str,
+    model: Path,
+    episodes: Sequence[Episode],
+    steps: int,
+    orders: Sequence[Sequence[int] | None] | None = None,
+) -> list[float]:
+    """Pure-simulation scores (average agent return) of the same policy on the same layouts.
+
+    ``orders``: per episode, its cars in the edge's slot order (:func:`slot_order`). The policy
+    is not indifferent to the order of its slots (ties in forming groups and ordering their
+    members are broken by slot), and the edge gives slots in the order the cars joined, not by
+    car id: the simulation's agents take the same order, so the two play the same game."""
     policy = OnnxPolicy(model)
     scores = []
-    for episode in episodes:
+    for episode, order in zip(episodes, orders or [None] * len(episodes), strict=True):
         arena = episode_arena(task, episode, steps)
+        if order:
+            by_id = sorted(order)  # the world places the i-th car by id on agent i's start
+            start = arena.pos[0, : len(order)].copy()
+            arena.pos[0, : len(order)] = start[[by_id.index(car) for car in order]]
         policy.reset(arena.slots)
         fresh = np.ones(arena.slots, bool)
         for _ in range(steps):
@@ -612,8 +634,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     result["planned"] = planned
     from udan.hil.report import can_plot, write_report
 
-    episodes = [Episode(e["agents"], e["obstacles"], e["seed"]) for e in result["edge"]["episodes"]]
-    sim = simulate(args.task, args.model, episodes, args.episode_steps)
+    records = result["edge"]["episodes"]
+    episodes = [Episode(e["agents"], e["obstacles"], e["seed"]) for e in records]
+    orders = [slot_order(e) for e in records]
+    sim = simulate(args.task, args.model, episodes, args.episode_steps, orders)
     summary = write_report(args, result, sim, args.report)
     if not can_plot():
         print(

@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from concurrent import futures
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from test_train import TINY, one_line_exit_2, quiet, run_cli
 
 from udan.budget import planned_counts
 from udan.checkpoint import load_checkpoint, load_model
-from udan.cluster import PROBE_SECONDS, ScaleError, import_ray, ray_session
+from udan.cluster import PROBE_SECONDS, ScaleError, check_address, import_ray, ray_session
 from udan.distributed import POOLS, LocalPool, Rollout, RolloutWorker, WorkerLost
 from udan.evaluate import CheckpointPolicy, evaluate
 from udan.train import EpisodeReplay, TrainConfig, build, train
@@ -241,6 +242,25 @@ def test_an_address_that_does_not_answer_is_given_up_within_its_deadline():
             assert time.monotonic() - started < within, address
 
 
+def test_an_address_where_grpc_answers_but_not_ray_is_refused_within_its_deadline():
+    """A gRPC server that is not Ray (or any HTTP/2 server, such as a proxy that answers every
+    address with 404: this machine's network does) passes a connect and a channel check; Ray
+    would then retry it for 20 s and more, a log line a second. Ray's own first call is made
+    instead: the server does not know it, and the address is refused with what it answered."""
+    grpc = pytest.importorskip("grpc")
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=1))
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    try:
+        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+            started = time.monotonic()
+            with pytest.raises(ScaleError, match=r"not a Ray cluster .*UNIMPLEMENTED"):
+                check_address(address, PROBE_SECONDS)
+            assert time.monotonic() - started < PROBE_SECONDS, address
+    finally:
+        server.stop(0)
+
+
 def test_auto_probes_the_cluster_ray_would_join(tmp_path):
     """``auto`` is resolved as Ray resolves it (here RAY_ADDRESS) and probed like any address."""
     env = {**os.environ, "RAY_ADDRESS": "127.0.0.1:1"}
@@ -346,3 +366,47 @@ def test_ctrl_c_on_the_command_line_writes_a_checkpoint(tmp_path):
     ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["progress"]["steps"] >= 400
     counted_once(ckpt)
+
+
+def _free_port() -> int:
+    """A port the system would hand out (the ephemeral range: clear of Ray's worker ports)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_udan_train_joins_a_running_cluster_by_its_address_and_by_ray_client(tmp_path):
+    """A cluster started apart (``ray start --head``, as on a lab's server) is joined by its GCS
+    address and through ``ray://`` (Ray's client server): the probe passes both, and each run
+    trains on the cluster's workers. ``--block`` keeps the head in one process whose SIGTERM
+    stops everything it started (``ray stop`` would stop every Ray on the machine)."""
+    gcs, client = _free_port(), _free_port()
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
+    head = subprocess.Popen(
+        [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+         "--port", str(gcs), "--ray-client-server-port", str(client), "--num-cpus", "2",
+         "--include-dashboard", "false"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                check_address(f"ray://127.0.0.1:{client}", PROBE_SECONDS)
+                break
+            except ScaleError:
+                time.sleep(1)
+        for name, address in (("gcs", f"127.0.0.1:{gcs}"), ("client", f"ray://127.0.0.1:{client}")):
+            out = tmp_path / name
+            args = ["--steps", "1600", "--workers", "2", "--address", address, "--out", str(out)]
+            proc = subprocess.run(
+                [str(Path(sys.executable).with_name("udan-train")), *args],
+                capture_output=True, text=True, env=env, timeout=180,
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stderr[-2000:]
+            ckpt = load_checkpoint(out / "checkpoint.pt")
+            assert ckpt["progress"]["steps"] == 1600 and ckpt["workers"]["started"] == 2
+    finally:
+        head.terminate()
+        head.wait(timeout=60)

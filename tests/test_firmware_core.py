@@ -84,6 +84,20 @@ def test_duplicate_cache_is_bounded_then_replay(car: CarCore, edge: Edge) -> Non
     assert car.counters.duplicates == 1 and car.counters.rejected["replay"] == 1
 
 
+def test_the_resend_of_a_command_that_came_expired_is_a_replay(car: CarCore, edge: Edge) -> None:
+    """Spec section 4: a frame refused after step 7 still advances the replay window, and step 6
+    answers copies of accepted frames only. So when a loaded machine delivers a command after
+    its deadline and the edge's resend (sent before the refusal's ACK came back) follows, the
+    car refuses the first as expired and the copy as a replay; neither moves anything."""
+    late = edge.command(2, 1_000, validity_us=5_000)
+    first = car.handle(late, 7_000)
+    assert first.verdict == "expired" and first.motor is None
+    copy = car.handle(late, 7_400)
+    assert copy.verdict == "replay" and copy.motor is None
+    assert car.counters.rejected["expired"] == 1 and car.counters.rejected["replay"] == 1
+    assert car.counters.duplicates == 0
+
+
 def test_watchdog_trips_once_and_rearms_on_the_next_command(car: CarCore, edge: Edge) -> None:
     assert car.next_wakeup_us() is None
     car.handle(edge.command(0, 1_000), 1_000)

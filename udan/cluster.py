@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from typing import Any
 
 
 class ScaleError(ValueError):
@@ -59,8 +60,10 @@ def import_ray():
 
 def check_address(address: str, timeout: float, name: str = "") -> None:
     """Refuse, within ``timeout`` seconds, an ``--address`` that is malformed, where nothing
-    answers, or where what answers does not speak gRPC (Ray's GCS and client server do): Ray
-    itself would retry such an address for minutes. ``name``: how the user wrote it."""
+    answers, or where what answers is not Ray: no gRPC, or gRPC (any HTTP/2 server, a proxy)
+    that does not know the call a Ray GCS (``HOST:PORT``) or client server (``ray://``)
+    answers. Ray itself would retry such an address for minutes (and log a line a second).
+    ``name``: how the user wrote it."""
     name = f"{name} ({address})" if name else address
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
@@ -82,6 +85,35 @@ def check_address(address: str, timeout: float, name: str = "") -> None:
             raise ScaleError(
                 f"--address {name}: what answers there is not a Ray cluster (no gRPC)"
             ) from None
+        call, request = _ray_call(channel, client=address.startswith("ray://"))
+        try:
+            call(request, timeout=max(timeout - (time.monotonic() - started), 0.1))
+        except grpc.RpcError as err:
+            if err.code() not in (
+                grpc.StatusCode.UNAUTHENTICATED,
+                grpc.StatusCode.PERMISSION_DENIED,
+            ):
+                raise ScaleError(
+                    f"--address {name}: what answers there is not a Ray cluster "
+                    f"(its gRPC answered Ray's call with {err.code().name})"
+                ) from None
+
+
+def _ray_call(channel, *, client: bool) -> tuple[Any, Any]:
+    """The cheapest call the Ray at the other end answers: the client server's ping, or the
+    GCS's cluster id (a cluster that wants a token refuses it: still Ray, and Ray's own join
+    says what is wrong)."""
+    if client:
+        from ray.core.generated import ray_client_pb2, ray_client_pb2_grpc
+
+        stub = ray_client_pb2_grpc.RayletDriverStub(channel)
+        return stub.ClusterInfo, ray_client_pb2.ClusterInfoRequest(
+            type=ray_client_pb2.ClusterInfoType.PING
+        )
+    from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
+
+    stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+    return stub.GetClusterId, gcs_service_pb2.GetClusterIdRequest()
 
 
 class _SilenceThreadNotice(logging.Filter):

@@ -76,3 +76,20 @@ def test_the_camera_process_shows_the_world_and_stops_cleanly() -> None:
         summary = camera.stop()
     assert summary["frames"] > 0
     assert not Path(f"/dev/shm/{name}").exists()
+
+
+def test_the_simulation_plays_the_edges_slot_order() -> None:
+    """The reference simulation seats its agents in the slots the edge gave the cars (the order
+    they joined): identity order is the plain simulation, and an episode's record names it."""
+    from udan.hil.harness import simulate, slot_order
+    from udan.hil.world import Episode
+
+    record = {"slots": {"1": 2, "2": 3, "3": 1, "4": 4, "5": 0}}
+    assert slot_order(record) == [5, 3, 1, 2, 4]
+    assert slot_order({"returns": {}}) is None
+    model = Path(__file__).resolve().parents[2] / "models" / "find_water" / "policy.onnx"
+    episodes = [Episode(5, 8, 0), Episode(3, 2, 1)]
+    plain = simulate("find_water", model, episodes, 30)
+    assert simulate("find_water", model, episodes, 30, [[1, 2, 3, 4, 5], None]) == plain
+    with pytest.raises(ValueError):
+        simulate("find_water", model, episodes, 30, [None])
