@@ -52,7 +52,7 @@ def _publish(name: str, ready, stop) -> None:
     frames = circling_cars(Renderer(ArenaGeometry()), CYCLE, CARS)
     with VirtualCamera(name, fps=40.0) as cam:
         ready.set()
-        cam.run(lambda _t: frames[cam.frames % CYCLE], stop=stop)
+        cam.run(lambda _t, out: np.copyto(out, frames[cam.frames % CYCLE]), stop=stop)
 
 
 def _percentiles(ms: list[float]) -> dict[str, float | int]:

@@ -23,27 +23,33 @@ than queued: a slow consumer sees fresh frames, never a growing backlog.
 
 The virtual camera (`virtual://NAME`) is a shared-memory segment written by the HIL's renderer in
 another process. Its layout is defined here, once (`VcamLayout`), because edge/ may not import
-hil/ while hil/ may import edge/. The reader polls the header every half millisecond instead of
-being notified: the writer needs to know nothing about its readers, never blocks on them, and a
-reader that dies costs nothing; the price is at most the poll interval of latency.
+hil/ while hil/ may import edge/. A reader sleeps on the header's frame counter as a Linux futex
+and the writer wakes every sleeper after each frame: the writer needs to know nothing about its
+readers, never blocks on them, and a reader that dies costs nothing (where there is no futex the
+reader polls the counter every half millisecond, at the price of up to that much latency). A
+consumer that checks `Frame.intact` after using an image may have it lent: the image is then the
+shared slot itself, not a copy (`CameraSource.lend`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import importlib
 import mmap
 import os
+import platform
 import re
 import shutil
 import struct
 import subprocess
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any, ClassVar
@@ -54,7 +60,9 @@ import numpy as np
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"})
 VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"})
 POLL_S = 0.0005
-"""How often a virtual-camera reader looks for a new frame."""
+"""How often a virtual-camera reader looks for a new frame where it cannot sleep on a futex."""
+WAIT_S = 0.1
+"""Longest a virtual-camera reader sleeps on the futex before it looks again anyway."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +75,23 @@ class Frame:
     """Frame number from the source: consecutive unless the source skipped frames."""
     t_arrival_ns: int | None = None
     """When the source handed it over (None: at capture); minus the capture, its age."""
+    lease: Callable[[], bool] | None = None
+    """For an image lent from the source's own buffer (`CameraSource.lend`): whether that
+    buffer still holds this frame. None: the image is the frame's own."""
+
+    def intact(self) -> bool:
+        """Whether the image is still this frame's: always for an image of its own; for a lent
+        one, whether the source has not reused its buffer yet. A result computed from a lent
+        image counts only if this holds after the computation."""
+        return self.lease is None or self.lease()
+
+    def owned(self) -> Frame | None:
+        """This frame with an image of its own (a lent one is copied); None if the source has
+        already reused the buffer."""
+        if self.lease is None:
+            return self
+        copy = replace(self, image=self.image.copy(), lease=None)
+        return copy if self.lease() else None
 
 
 CLOCKS = ("auto", "latch", "realtime", "arrival")
@@ -286,13 +311,16 @@ class CameraLost(CameraError):
 
 
 class CameraSource:
-    """Base of all sources: subclasses implement `_read` (and `_close`, `_stamp` if needed);
-    live cameras also take `CameraOptions` (`OPTIONS` names the ones a source understands),
-    report the granted `mode` and can `reopen`."""
+    """Base of all sources: subclasses implement `_read` (and `_close`, `_stamp`, `_lease` if
+    needed); live cameras also take `CameraOptions` (`OPTIONS` names the ones a source
+    understands), report the granted `mode` and can `reopen`."""
 
     OPTIONS: ClassVar[frozenset[str]] = frozenset()
     """The `CameraOptions` this kind of source takes; any other given is an error."""
     KIND: ClassVar[str] = "this source"
+    lend = False
+    """Set by a consumer that checks `Frame.intact` after using each image: a source that can
+    then hands out its own buffer instead of a copy (the virtual camera's shared slot)."""
 
     def __init__(self, url: str, options: CameraOptions = CameraOptions()) -> None:
         unknown = sorted(options.given.keys() - self.OPTIONS)
@@ -348,6 +376,11 @@ class CameraSource:
         ``arrival_ns``; sources that know better than the arrival say when it was exposed."""
         return arrival_ns, self._count
 
+    def _lease(self) -> Callable[[], bool] | None:
+        """For an image `_read` lent from the source's buffer: whether the buffer still holds
+        it (`Frame.lease`); None for an image of its own."""
+        return None
+
     def _close(self) -> None:
         """Release the device, file or mapping."""
 
@@ -360,15 +393,18 @@ class CameraSource:
                 return None
             arrival_ns = time.monotonic_ns()
             t_ns, index = self._stamp(arrival_ns)
+            lease = self._lease()
             self._count += 1
             guard = self._stale_guard
             if guard is not None and guard.stale(arrival_ns - t_ns):
                 self.stale += 1
                 continue
-            if image.ndim == 3:
+            if image.ndim == 3 and image.shape[2] > 1:
                 code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-                image = cv2.cvtColor(image, code) if image.shape[2] > 1 else image[..., 0]
-            return Frame(image, t_ns, index, arrival_ns)
+                image, lease = cv2.cvtColor(image, code), None
+            elif image.ndim == 3:
+                image = image[..., 0]
+            return Frame(image, t_ns, index, arrival_ns, lease)
 
     def stop(self) -> None:
         """Make a blocked or future `read` return None soon; safe from any thread."""
@@ -626,9 +662,11 @@ class VcamLayout:
       writer's `time.monotonic_ns()` at render time);
     - from `data_offset` (64-byte aligned): `slots` grayscale images of width x height bytes.
 
-    Frame n goes to slot n % slots. Writer: slot number := 0, image, slot (n, t), latest := n.
-    Reader: take latest n, copy slot n % slots, and keep the copy only if the slot still says n
-    before and after (a seqlock): several slots give a slow reader room before it is lapped.
+    Frame n goes to slot n % slots. Writer: slot number := 0, image, slot (n, t), latest := n,
+    wake the readers (`FrameBell`). Reader: take latest n, copy slot n % slots, and keep the
+    copy only if the slot still says n before and after (a seqlock); a reader that is lent the
+    slot instead of a copy checks it after using the image. Several slots give a slow reader
+    room before it is lapped.
     """
 
     width: int
@@ -672,12 +710,16 @@ class VcamLayout:
             buf, 0, VCAM_MAGIC, VCAM_VERSION, self.slots, self.width, self.height, 0, 0, 0
         )
 
-    def publish(self, buf, number: int, t_ns: int, image: np.ndarray) -> None:
-        """Writer side: frame `number` (from 1, increasing) captured at `t_ns`."""
-        at = self._slot_at(number % self.slots)
-        _VCAM_SLOT.pack_into(buf, at, 0, 0)
-        self._image(buf, number % self.slots)[:] = image
-        _VCAM_SLOT.pack_into(buf, at, number, t_ns)
+    def begin(self, buf, number: int) -> np.ndarray:
+        """Writer side, first half: the slot of frame `number` (from 1, increasing), marked as
+        being written; draw the frame into the image returned, then `commit` it."""
+        _VCAM_SLOT.pack_into(buf, self._slot_at(number % self.slots), 0, 0)
+        return self._image(buf, number % self.slots)
+
+    def commit(self, buf, number: int, t_ns: int) -> None:
+        """Writer side, second half: frame `number`, captured at `t_ns`, is complete (then
+        ring the `FrameBell`)."""
+        _VCAM_SLOT.pack_into(buf, self._slot_at(number % self.slots), number, t_ns)
         struct.pack_into("<Q", buf, _VCAM_LATEST_AT, number)
 
     def mark_closed(self, buf) -> None:
@@ -700,23 +742,80 @@ class VcamLayout:
             newest = max(newest, t)
         return None, newest
 
+    def holds(self, buf, number: int) -> bool:
+        """Reader side: whether frame `number`'s slot still holds it, complete."""
+        return _VCAM_SLOT.unpack_from(buf, self._slot_at(number % self.slots))[0] == number
+
+    def lend(self, buf, number: int) -> tuple[np.ndarray, int] | None:
+        """Reader side: frame `number`'s image in place, no copy, and its capture time, or None
+        if the writer is already reusing its slot; the image is this frame's only while
+        `holds` says so."""
+        before, t_ns = _VCAM_SLOT.unpack_from(buf, self._slot_at(number % self.slots))
+        return (self._image(buf, number % self.slots), t_ns) if before == number else None
+
     def read(self, buf, number: int) -> tuple[np.ndarray, int] | None:
         """Reader side: a copy of frame `number` and its capture time, or None if the writer
         has already reused its slot."""
-        at = self._slot_at(number % self.slots)
-        before, t_ns = _VCAM_SLOT.unpack_from(buf, at)
-        if before != number:
+        lent = self.lend(buf, number)
+        if lent is None:
             return None
-        image = self._image(buf, number % self.slots).copy()
-        after, _ = _VCAM_SLOT.unpack_from(buf, at)
-        return (image, t_ns) if after == number else None
+        image = lent[0].copy()
+        return (image, lent[1]) if self.holds(buf, number) else None
+
+
+_SYS_FUTEX = {"x86_64": 202, "aarch64": 98, "arm64": 98, "riscv64": 98}.get(platform.machine())
+_FUTEX_WAIT, _FUTEX_WAKE = 0, 1  # without FUTEX_PRIVATE_FLAG: shared between processes
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+def _futex_call() -> Callable[..., int] | None:
+    """libc's `syscall(2)` where Linux futexes are known (glibc wraps no futex call)."""
+    if not sys.platform.startswith("linux") or _SYS_FUTEX is None:
+        return None
+    try:
+        call = ctypes.CDLL(None, use_errno=True).syscall
+    except (OSError, AttributeError):
+        return None
+    call.restype = ctypes.c_long
+    return call
+
+
+_FUTEX = _futex_call()
+
+
+class FrameBell:
+    """The header's frame counter as a futex (its low 32 bits): a reader sleeps on it until
+    the writer rings after a frame, waking every sleeper; where there is no futex, a reader
+    naps `POLL_S` instead. The mapping `buf` must stay open while the bell is used."""
+
+    def __init__(self, buf) -> None:
+        self._word = ctypes.c_void_p(np.frombuffer(buf, np.uint8, 4, _VCAM_LATEST_AT).ctypes.data)
+
+    def wait(self, latest: int, timeout_s: float) -> None:
+        """Sleep while the counter still says `latest`, at most `timeout_s` (or `POLL_S`
+        without a futex); may return early."""
+        if _FUTEX is None:
+            time.sleep(POLL_S)
+            return
+        timeout = _Timespec(int(timeout_s), int(timeout_s % 1 * 1e9))
+        expected = ctypes.c_uint(latest & 0xFFFFFFFF)
+        _FUTEX(_SYS_FUTEX, self._word, _FUTEX_WAIT, expected, ctypes.byref(timeout), None, 0)
+
+    def ring(self) -> None:
+        """Wake every reader sleeping on the counter."""
+        if _FUTEX is not None:
+            _FUTEX(_SYS_FUTEX, self._word, _FUTEX_WAKE, ctypes.c_int(2**31 - 1), None, None, 0)
 
 
 class FrameWriter:
     """Publishes frames into the shared memory ``name``, laid out as a `VcamLayout`: the HIL's
     virtual camera, and the perception process's ring of analysed frames for the flight
-    recorder. `close` tells readers the stream has ended and removes the memory (a reader that
-    mapped it keeps its mapping)."""
+    recorder. A frame is drawn straight into its slot (`begin`, `commit`) or copied there
+    (`publish`); each one rings the `FrameBell`. `close` tells readers the stream has ended and
+    removes the memory (a reader that mapped it keeps its mapping)."""
 
     def __init__(self, name: str, width: int, height: int, slots: int = 3) -> None:
         self.name = name
@@ -729,17 +828,30 @@ class FrameWriter:
                 f"the stale /dev/shm/{name})"
             ) from None
         self.layout.write_header(self._shm.buf)
+        self._bell = FrameBell(self._shm.buf)
         self._closed = False
 
+    def begin(self, number: int) -> np.ndarray:
+        """The slot of frame ``number`` (from 1, increasing), to draw the frame into before
+        `commit`; readers see it as being written until then."""
+        return self.layout.begin(self._shm.buf, number)
+
+    def commit(self, number: int, t_ns: int) -> None:
+        """Frame ``number``, captured at ``t_ns``, is complete: readers are woken."""
+        self.layout.commit(self._shm.buf, number, t_ns)
+        self._bell.ring()
+
     def publish(self, number: int, t_ns: int, image: np.ndarray) -> None:
-        """Frame ``number`` (from 1, increasing) captured at ``t_ns``."""
-        self.layout.publish(self._shm.buf, number, t_ns, image)
+        """Frame ``number`` (from 1, increasing) captured at ``t_ns``: a copy of ``image``."""
+        np.copyto(self.begin(number), image)
+        self.commit(number, t_ns)
 
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
         self.layout.mark_closed(self._shm.buf)
+        self._bell.ring()
         self._shm.close()
         self._shm.unlink()
 
@@ -793,13 +905,15 @@ class VirtualSource(CameraSource):
         )
         self._last = 0
         self._last_t = 0
+        self._bell: FrameBell | None = FrameBell(self._buf)
 
     def _read(self) -> np.ndarray | None:
-        buf, layout = self._buf, self._layout
-        while not self._stopping.is_set():
+        buf, layout, bell = self._buf, self._layout, self._bell
+        take = layout.lend if self.lend else layout.read
+        while not self._stopping.is_set() and bell is not None:
             latest = layout.latest(buf)
             if latest > self._last:
-                got = layout.read(buf, latest)
+                got = take(buf, latest)
                 if got is not None:
                     self._last = latest
                     image, self._last_t = got
@@ -807,14 +921,27 @@ class VirtualSource(CameraSource):
                 continue
             if layout.closed(buf):
                 return None
-            time.sleep(POLL_S)
+            bell.wait(latest, WAIT_S)
         return None
 
     def _stamp(self, arrival_ns: int) -> tuple[int, int]:
         return self._last_t, self._last
 
+    def _lease(self) -> Callable[[], bool] | None:
+        if not self.lend:
+            return None
+        number, layout, buf = self._last, self._layout, self._buf
+        return lambda: layout.holds(buf, number)
+
+    def stop(self) -> None:
+        super().stop()
+        if self._bell is not None:
+            self._bell.ring()  # a reader asleep on the bell wakes and sees the stop
+
     def _close(self) -> None:
-        self._buf.close()
+        self._bell = None
+        with contextlib.suppress(BufferError):  # a lent image still maps it: unmapped with it
+            self._buf.close()
 
 
 # -- registry ---------------------------------------------------------------------------------
@@ -896,6 +1023,7 @@ class FrameGrabber:
         self.dropped = 0
         """Frames overwritten by a newer one before anyone took them."""
         self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)
         self._latest: Frame | None = None
         self._ended = False
         self._error: Exception | None = None
@@ -970,7 +1098,9 @@ class FrameGrabber:
         return {"captured": self.captured, "dropped": self.dropped, **self.source.counters()}
 
     def _wake(self) -> None:
-        """Wake the coroutine waiting in `next_frame`, if any (lock held)."""
+        """Wake the coroutine waiting in `next_frame` or the threads in `wait_frame`, if any
+        (lock held)."""
+        self._arrived.notify_all()
         if self._waiter is not None:
             loop, event = self._waiter
             self._waiter = None
@@ -1008,16 +1138,34 @@ class FrameGrabber:
                         self._waiter = None
                     return self._take()
 
+    def wait_frame(self, timeout: float | None = None) -> Frame | None:
+        """`next_frame` for a thread that runs no event loop (the perception process's): the
+        newest frame not yet returned, waiting up to `timeout` seconds; None on timeout, at the
+        end of the stream, or once stopped (a read error is raised)."""
+        self.start()
+        with self._lock:
+            self._arrived.wait_for(
+                lambda: self._latest is not None or self._ended or self._stop.is_set(), timeout
+            )
+            return self._take()
+
     @property
     def ended(self) -> bool:
         """The stream has ended (or failed) and every frame of it has been taken."""
         with self._lock:
             return self._ended and self._latest is None
 
-    def close(self) -> None:
-        """Stop the capture thread and close the source."""
+    def stop(self) -> None:
+        """Stop capturing soon (a blocked read returns) and wake `wait_frame`; safe from any
+        thread."""
         self._stop.set()
         self.source.stop()
+        with self._lock:
+            self._arrived.notify_all()
+
+    def close(self) -> None:
+        """Stop the capture thread and close the source."""
+        self.stop()
         if self._thread.ident is not None:
             self._thread.join(self.JOIN_S)
         if not self._thread.is_alive():

@@ -219,6 +219,11 @@ def _late(command: CommandReport) -> bool:
     return command.result == "expired" or _executed_late(command)
 
 
+def _since_us(start_ns: int, t_ns: int | None) -> int | None:
+    """Microseconds from ``start_ns`` to ``t_ns`` (None stays None)."""
+    return None if t_ns is None else (t_ns - start_ns) // 1000
+
+
 def _outcome(command: CommandReport) -> str:
     """on_time (the car accepted it in time), missed, or not_ready (nothing was sent)."""
     if command.acked:
@@ -605,6 +610,14 @@ class ControlCore:
             "commands": {str(c): a for c, a in commands.items()},
             "offsets": self._offsets(state),
             "sends": {str(c): r.attempts for c, r in report.cars.items()},
+            "after": {str(c): leader for c, leader in decision.after.items()},
+            "timeline_us": {
+                str(c): [
+                    _since_us(decided_ns, t)
+                    for t in (r.first_sent_ns, r.car_received_ns, r.acked_ns)
+                ]
+                for c, r in report.cars.items()
+            },
             "late_cars": sorted(c for c, r in report.cars.items() if _late(r)),
             "cells": {str(c): list(cell) for c, cell in state.cells.items()},
             "headings_deg": {

@@ -172,8 +172,11 @@ class Annotator:
         overlay = self._overlay
         if t - (overlay.get("t_ns") or t) > STEP_SHOWN_NS:  # the corner's figures only
             overlay = {**overlay, "cells": {}, "commands": {}, "groups": [], "uncertain": []}
+        owned = frame.owned()  # drawn later, in the drawing thread: a lent image is copied
+        if owned is None:
+            return
         try:
-            item = (frame.image, self._marks(scene, overlay), overlay, repeats, thumbnail)
+            item = (owned.image, self._marks(scene, overlay), overlay, repeats, thumbnail)
             self._queue.put_nowait(item)
         except queue.Full:  # the next frame due fills the video's gap
             self.skipped += 1

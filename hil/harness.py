@@ -129,8 +129,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--noise", type=float, default=2.0, help="camera noise sigma")
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
     run.add_argument(
-        "--edge-realtime", action="store_true", help="udan-edge --realtime (needs CAP_SYS_NICE)"
-    )
+        "--edge-realtime", action="store_true",
+        help="udan-edge --realtime, and the mock cars' process at real-time priority too "
+        "(needs CAP_SYS_NICE)",
+    )  # fmt: skip
     run.add_argument(
         "--camera", choices=("virtual", "gige"), default="virtual",
         help="the edge reads the virtual camera's shared memory, or a GigE Vision stream of it",
@@ -257,6 +259,8 @@ class Loop:
             cmd += ["--episodes-per-cell", str(a.episodes)]
         if a.record:
             cmd += ["--truth", str(self.folder / "truth.jsonl")]
+        if a.edge_realtime:  # the cars too: each real one is a microcontroller of its own
+            cmd.append("--realtime")
         proc = self._spawn("world", cmd)
         reading = asyncio.get_running_loop().run_in_executor(None, proc.stdout.readline)
         stopped = asyncio.ensure_future(stopping.wait())

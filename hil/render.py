@@ -349,9 +349,11 @@ class Renderer:
         self,
         cars: Sequence[tuple[int, float, float, float]],
         cells: Mapping[str, Iterable[tuple[int, int]]],
+        out: np.ndarray | None = None,
     ) -> np.ndarray:
         """One grayscale frame (uint8, H x W): `cars` as (marker, x, y, heading) in arena metres
-        and radians, `cells` the cells per kind ("obstacle", "wall", "water", "target")."""
+        and radians, `cells` the cells per kind ("obstacle", "wall", "water", "target"); drawn
+        into `out` when given (the virtual camera's shared slot), else into a new image."""
         layout = frozenset(
             (kind, frozenset(map(tuple, where)))
             for kind, where in cells.items()
@@ -366,7 +368,17 @@ class Renderer:
         sprites += [
             (target, *self.geometry.cell_centre(*c), 0.0, 0.0) for c in cells.get("target", ())
         ]
-        frame = self._background.copy()
+        h = self.camera.height
+        frame = np.empty((h, self.camera.width), np.uint8) if out is None else out
+        # the noise is added as the background is laid down, and to each sprite's window as it
+        # goes in: one pass over the frame fewer than laying down, then adding
+        if self._noise.size:
+            off = int(self._rng.integers(0, NOISE_ROWS + 1))
+            above, below = self._noise[0, off : off + h], self._noise[1, off : off + h]
+            cv2.add(self._background, above, dst=frame)
+        else:
+            above = below = None
+            np.copyto(frame, self._background)
         pad = math.ceil(3 * self.camera.blur_sigma)
         windows = []
         for sprite, x, y, heading, height in sorted(sprites, key=lambda s: s[4]):
@@ -376,15 +388,14 @@ class Renderer:
         for x0, y0, x1, y1 in windows:
             a0, b0 = max(x0 - pad, 0), max(y0 - pad, 0)
             a1, b1 = min(x1 + pad, self.camera.width), min(y1 + pad, self.camera.height)
-            patch = self._blur(self._sharp[b0:b1, a0:a1])
-            frame[y0:y1, x0:x1] = patch[y0 - b0 : y1 - b0, x0 - a0 : x1 - a0]
+            patch = self._blur(self._sharp[b0:b1, a0:a1])[y0 - b0 : y1 - b0, x0 - a0 : x1 - a0]
+            if above is not None:
+                patch = cv2.add(patch, above[y0:y1, x0:x1])
+            frame[y0:y1, x0:x1] = patch
         for x0, y0, x1, y1 in windows:
             self._sharp[y0:y1, x0:x1] = self._static[y0:y1, x0:x1]
-        if self._noise.size:
-            off = int(self._rng.integers(0, NOISE_ROWS + 1))
-            h = self.camera.height
-            cv2.add(frame, self._noise[0, off : off + h], dst=frame)
-            cv2.subtract(frame, self._noise[1, off : off + h], dst=frame)
+        if below is not None:
+            cv2.subtract(frame, below, dst=frame)
         return frame
 
 

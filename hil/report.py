@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from udan.edge.telemetry import BIN_RATIO
+
 SPAN_TITLES = {
     "frame_age": "frame age on arrival",
     "frame_to_state": "frame → state",
@@ -216,7 +218,7 @@ def _plot_latency(edge: dict[str, Any], path: Path) -> None:
     for ax, (name, title) in zip(axes, SPAN_TITLES.items(), strict=True):
         s = spans.get(name, {})
         if s.get("count"):
-            ax.bar(s["bins_ms"], s["bin_counts"], width=np.array(s["bins_ms"]) * 0.036)
+            ax.bar(s["bins_ms"], s["bin_counts"], width=np.array(s["bins_ms"]) * (BIN_RATIO - 1))
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
@@ -333,6 +335,7 @@ def write_report(
         "p99_ms": {name: edge["spans"][name]["p99_ms"] for name in SPAN_TITLES},
         "edge_memory_mb": edge.get("memory_mb"),
         "edge_scheduler": edge.get("scheduler"),
+        "cars_scheduler": world.get("scheduler"),
         "exits": result["exits"],
     }
     if "sightings" in result:

@@ -18,6 +18,7 @@ import random
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 
 import cv2
 import numpy as np
@@ -103,12 +104,20 @@ class VirtualCamera:
                 f"expected a uint8 {self.layout.height}x{self.layout.width} frame, got "
                 f"{image.dtype} {image.shape}"
             )
+        return self.offer(lambda out: np.copyto(out, image), t_ns)
+
+    def offer(self, draw: Callable[[np.ndarray], object], t_ns: int | None = None) -> bool:
+        """Offer the next frame captured at `t_ns` (default now), drawn by `draw(out)` straight
+        into its slot of the shared memory (uint8, height x width), so it is never copied
+        there; a frame a fault swallows is not drawn. False if a fault swallowed it."""
         t_ns = time.monotonic_ns() if t_ns is None else t_ns
         self.frames += 1
         if t_ns < self._stall_until_ns or self._rng.random() < self.drop_probability:
             self.faulted += 1
             return False
-        self._writer.publish(self.frames, t_ns, image)
+        image = self._writer.begin(self.frames)
+        draw(image)
+        self._writer.commit(self.frames, t_ns)
         self.published += 1
         if self._recorder is not None:
             self._recorder.add(image)
@@ -116,20 +125,21 @@ class VirtualCamera:
 
     def run(
         self,
-        render: Callable[[int], np.ndarray],
+        render: Callable[[int, np.ndarray], object],
         *,
         frames: int | None = None,
         stop: threading.Event | None = None,
     ) -> None:
         """Render and publish at `self.fps` until `frames` have been offered or `stop` is set;
-        `render(t_ns)` draws the world as it is at capture time `t_ns`. A late frame is not
-        followed by a burst: the schedule restarts from it."""
+        `render(t_ns, out)` draws the world as it is at capture time `t_ns` into `out`, the
+        frame's slot (see `offer`). A late frame is not followed by a burst: the schedule
+        restarts from it."""
         stop = stop or threading.Event()
         period_ns = round(1e9 / self.fps)
         due = time.monotonic_ns()
         while not stop.is_set() and (frames is None or self.frames < frames):
             t_ns = time.monotonic_ns()
-            self.publish(render(t_ns), t_ns)
+            self.offer(partial(render, t_ns), t_ns)
             due = max(due + period_ns, time.monotonic_ns())
             stop.wait(max(0, due - time.monotonic_ns()) / 1e9)
 

@@ -8,6 +8,7 @@ import textwrap
 import threading
 import time
 import uuid
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -334,6 +335,21 @@ async def test_grabber_waits_on_a_silent_camera_and_closes():
         assert time.monotonic() - t0 < 1.0
 
 
+def test_wait_frame_blocks_a_thread_until_a_frame_a_timeout_or_a_stop():
+    """The perception process's main thread runs no event loop: it waits on the grabber."""
+    with VirtualCamera(unique_name(), 32, 24) as cam:
+        grabber = FrameGrabber(open_camera(f"virtual://{cam.name}"))
+        assert grabber.wait_frame(0.05) is None and not grabber.ended
+        cam.publish(np.full((24, 32), 9, np.uint8), 456)
+        frame = grabber.wait_frame(1.0)
+        assert (frame.index, frame.t_capture_ns, int(frame.image[0, 0])) == (1, 456, 9)
+        threading.Timer(0.1, grabber.stop).start()
+        t0 = time.monotonic()
+        assert grabber.wait_frame(5.0) is None
+        assert time.monotonic() - t0 < 1.0
+        grabber.close()
+
+
 # -- the virtual camera ----------------------------------------------------------------------
 WRITER = textwrap.dedent(
     """
@@ -446,3 +462,53 @@ def test_virtual_camera_name_is_exclusive_and_recording(tmp_path):
         frames = list(replay)
     assert len(frames) == 5
     assert abs(int(frames[4].image.mean()) - 200) < 8
+
+
+def test_a_lent_frame_is_the_slot_itself_until_the_camera_reuses_it():
+    """A consumer that checks ``Frame.intact`` is lent the shared slot, no copy; the frame says
+    when the writer has begun to reuse it, and a copy taken before that is the frame's own."""
+    with VirtualCamera(unique_name(), 32, 24, slots=3) as cam:
+        reader = open_camera(f"virtual://{cam.name}")
+        reader.lend = True
+        cam.publish(np.full((24, 32), 1, np.uint8))
+        frame = reader.read()
+        assert not frame.image.flags.owndata and frame.lease is not None
+        own = frame.owned()
+        assert own.lease is None and own.intact() and own.image.flags.owndata
+        for k in (2, 3):
+            cam.publish(np.full((24, 32), k, np.uint8))
+            assert frame.intact() and int(frame.image[0, 0]) == 1
+        cam.publish(np.full((24, 32), 4, np.uint8))  # frame 4 takes frame 1's slot
+        assert not frame.intact() and frame.owned() is None
+        assert int(own.image[0, 0]) == 1
+        copying = open_camera(f"virtual://{cam.name}")
+        assert copying.read().lease is None  # a consumer that did not ask gets a copy
+        copying.close()
+        reader.close()
+
+
+def _voluntary_switches(thread: threading.Thread) -> int:
+    status = Path(f"/proc/self/task/{thread.native_id}/status").read_text()
+    return int(status.split("voluntary_ctxt_switches:")[1].split()[0])
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="Linux /proc")
+def test_a_reader_sleeps_until_the_writer_rings_instead_of_polling():
+    """A waiting reader sleeps on the frame counter (a futex the writer wakes after each frame):
+    a second without frames costs it a handful of wake-ups, not the 2,000 of a 0.5 ms poll,
+    and a frame wakes it at once."""
+    with VirtualCamera(unique_name(), 32, 24) as cam:
+        reader = open_camera(f"virtual://{cam.name}")
+        got = []
+        thread = threading.Thread(target=lambda: got.append(reader.read()))
+        thread.start()
+        time.sleep(0.1)
+        before = _voluntary_switches(thread)
+        time.sleep(1.0)
+        woken = _voluntary_switches(thread) - before
+        t_ns = time.monotonic_ns()
+        cam.publish(np.full((24, 32), 5, np.uint8), t_ns)
+        thread.join(5.0)
+        reader.close()
+    assert woken <= 30
+    assert got[0].t_capture_ns == t_ns and int(got[0].image[0, 0]) == 5

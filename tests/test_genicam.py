@@ -99,7 +99,9 @@ def gige(*args: str, pattern: np.ndarray = PATTERN) -> Iterator[subprocess.Popen
     height, width = pattern.shape
     with VirtualCamera(f"udan-test-{uuid.uuid4().hex[:10]}", width, height) as vcam:
         stop = threading.Event()
-        render = threading.Thread(target=vcam.run, args=(lambda t: pattern,), kwargs={"stop": stop})
+        render = threading.Thread(
+            target=vcam.run, args=(lambda t, out: np.copyto(out, pattern),), kwargs={"stop": stop}
+        )
         render.start()
         proc = start_bridge(vcam.name, *args)
         try:
@@ -197,7 +199,9 @@ def test_incomplete_frames_are_counted_and_never_returned():
 async def test_an_unplugged_camera_is_lost_then_reopened_when_it_returns():
     with VirtualCamera(f"udan-test-{uuid.uuid4().hex[:10]}", 640, 480) as vcam:
         stop = threading.Event()
-        render = threading.Thread(target=vcam.run, args=(lambda t: PATTERN,), kwargs={"stop": stop})
+        render = threading.Thread(
+            target=vcam.run, args=(lambda t, out: np.copyto(out, PATTERN),), kwargs={"stop": stop}
+        )
         render.start()
         bridge = start_bridge(vcam.name)
         grabber = FrameGrabber(open_camera(CAMERA))

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import os
+import pickle
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -18,15 +21,24 @@ import numpy as np
 import pytest
 
 from udan.edge.calibration import VisionError
-from udan.edge.camera import FRAME_THREAD_NICENESS, CameraError, FrameGrabber, open_camera
+from udan.edge.camera import (
+    FRAME_THREAD_NICENESS,
+    CameraError,
+    FrameGrabber,
+    attach_frames,
+    open_camera,
+)
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.perception import (
+    FrameRing,
     FrameTaken,
     Perception,
     PerceptionError,
     ProcessPerception,
+    RingSpec,
     ThreadPerception,
     VisionSettings,
+    _Server,
 )
 from udan.edge.vision import Scene
 from udan.hil.render import Renderer
@@ -145,6 +157,132 @@ async def test_frames_captured_before_the_cut_off_are_not_analysed(
         cut_off + k for k in range(1, 12, 2)
     ]
     assert all(e.t_capture_ns >= cut_off for e in events)
+
+
+def test_a_frame_the_camera_reuses_during_its_analysis_gives_no_scene(
+    arena_image: np.ndarray,
+) -> None:
+    """The perception process is lent the camera's shared slot, not a copy: a frame whose slot
+    the camera rewrote before the analysis ended is dropped and counted, never sent as a scene
+    (its image may have been half one frame, half another)."""
+    with VirtualCamera(unique_name(), slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        grabber = FrameGrabber(source)
+        vision = VisionSettings(GEOMETRY, tuple(CARS)).build()
+        analyse = vision.process
+
+        def analyse_while_the_camera_laps(frame):
+            scene = analyse(frame)
+            if frame.index == 2:  # meanwhile the camera wrote three frames: 5 took 2's slot
+                for _ in range(3):
+                    cam.publish(arena_image)
+            return scene
+
+        vision.process = analyse_while_the_camera_laps
+        edge, there = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        server = _Server(there, grabber, vision)
+        serving = threading.Thread(target=server.serve)
+        serving.start()
+        messages = []
+        try:
+            for _ in range(2):
+                cam.publish(arena_image)
+                while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                    messages.append(message)
+                messages.append(message)
+        finally:
+            edge.send(pickle.dumps(("stop",)))
+            serving.join(5.0)
+            grabber.close()
+            edge.close()
+            there.close()
+    scenes = [m[1].frame_index for m in messages if m[0] == "scene"]
+    taken = [m[1] for m in messages if m[0] == "taken"]
+    assert taken[:2] == [1, 2] and scenes[0] == 1 and 2 not in scenes
+    assert scenes[1] in (3, 4, 5)
+    assert server.overwritten == 1
+    counts = messages[-1][-1]
+    assert len(scenes) + counts["dropped"] <= counts["captured"] <= 5
+
+
+def test_a_frame_is_remembered_for_the_recorder_before_its_scene_leaves(
+    arena_image: np.ndarray,
+) -> None:
+    """The edge asks the perception process to keep a decision's frame as soon as it has the
+    scene, and a thread of the perception process reads the ask at once, whatever its main
+    thread is doing: the frame is remembered before the scene leaves, so even a main thread
+    held up right after sending (here 50 ms) has every asked frame kept, none "not
+    remembered"."""
+    with VirtualCamera(unique_name(), slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        grabber = FrameGrabber(source)
+        vision = VisionSettings(GEOMETRY, tuple(CARS)).build()
+        edge, there = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        ring = FrameRing(RingSpec(unique_name()))
+        server = _Server(there, grabber, vision, ring)
+        send_scene = server.send_scene
+
+        def send_then_stall(scene: Scene) -> None:
+            send_scene(scene)
+            time.sleep(0.05)
+
+        server.send_scene = send_then_stall
+        serving = threading.Thread(target=server.serve)
+        serving.start()
+        counts = {}
+        try:
+            for _ in range(4):
+                cam.publish(arena_image)
+                while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                    pass
+                edge.send(pickle.dumps(("keep", message[1].t_capture_ns)))
+                time.sleep(0.1)
+            edge.send(pickle.dumps(("skip_before", 0)))  # a message back with the counts
+            cam.publish(arena_image)
+            while (message := pickle.loads(edge.recv(1 << 16)))[0] != "scene":
+                pass
+            counts = message[-1]
+        finally:
+            edge.send(pickle.dumps(("stop",)))
+            serving.join(5.0)
+            grabber.close()
+            ring.close()
+            edge.close()
+            there.close()
+    assert counts["not_remembered"] == 0 and ring.missed == 0
+
+
+def test_the_recorder_ring_copies_a_lent_frame_the_camera_cannot_overwrite() -> None:
+    """The flight recorder's ring remembers lent frames by reference (no copy a frame) and
+    copies the one a decision used out of its slot when asked: the copy keeps the frame after
+    the camera reused the slot, and a frame whose slot was already reused is not kept (counted
+    as not remembered), never recorded half one frame, half another."""
+    with VirtualCamera(unique_name(), 32, 24, slots=3) as cam:
+        source = open_camera(f"virtual://{cam.name}")
+        source.lend = True
+        ring = FrameRing(RingSpec(unique_name()))
+        try:
+            frames = []
+            for k in (1, 2, 3):
+                cam.publish(np.full((24, 32), k, np.uint8), 1000 + k)
+                frames.append(source.read())
+                ring.analysed(frames[-1])
+            assert all(f.lease is not None for f in frames)
+            assert ring.keep(1002)
+            cam.publish(np.full((24, 32), 4, np.uint8), 1004)  # frame 4 takes frame 1's slot
+            cam.publish(np.full((24, 32), 5, np.uint8), 1005)  # and 5 frame 2's
+            assert not ring.keep(1001) and ring.missed == 1
+            buf, layout = attach_frames(ring.spec.decided)
+            number, _ = layout.find(buf, 1002)
+            image, t_ns = layout.read(buf, number)
+            assert t_ns == 1002 and (image == 2).all()
+            assert layout.latest(buf) == 1  # the reused frame was not kept
+            buf.close()
+        finally:
+            ring.close()
+            source.close()
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,6 @@
 """The virtual camera's renderer: its projection is the ground truth the vision tests rely on."""
 
+import copy
 import dataclasses
 import math
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from udan.edge.geometry import CORNER_IDS, ArenaGeometry, square
-from udan.hil.render import CameraModel, Renderer
+from udan.hil.render import NOISE_ROWS, CameraModel, Renderer
 
 GEOMETRY = ArenaGeometry()
 CELLS = {"obstacle": [(2, 3)], "water": [(0, 4)], "wall": [(0, 3)], "target": [(6, 6)]}
@@ -116,6 +117,23 @@ def test_noise_and_gain():
     plain = Renderer(GEOMETRY, CameraModel()).render([], {})[centre].mean()
     assert dark[centre].mean() == pytest.approx(plain * 0.5, abs=1)
     assert bright[centre].mean() == pytest.approx(plain * 1.2, abs=1)
+
+
+def test_a_frame_drawn_into_the_slot_is_the_noisy_scene():
+    """``render(out=)`` draws into the image given (the virtual camera's shared slot) the frame
+    ``render()`` returns; the noise, added while the frame is laid down rather than after, is the
+    noise-free scene's plus the noise field, saturating, cars and overlapping windows included."""
+    cars = [(5, 1.0, 1.1, 0.4), (6, 1.06, 1.18, 1.0), (7, 2.2, 0.4, 2.0)]
+    model = CameraModel(noise_sigma=3.0, blur_sigma=0.8, seed=5)
+    a, b = Renderer(GEOMETRY, model), Renderer(GEOMETRY, model)
+    clean = Renderer(GEOMETRY, dataclasses.replace(model, noise_sigma=0.0)).render(cars, CELLS)
+    offset = int(copy.deepcopy(a._rng).integers(0, NOISE_ROWS + 1))
+    above, below = a._noise[:, offset : offset + model.height]
+    expected = cv2.subtract(cv2.add(clean, above), below)
+    assert np.array_equal(a.render(cars, CELLS), expected)
+    out = np.zeros((model.height, model.width), np.uint8)
+    assert b.render(cars, CELLS, out=out) is out
+    assert np.array_equal(out, expected)
 
 
 @pytest.mark.parametrize(

@@ -8,18 +8,21 @@ import time
 
 import numpy as np
 
-from udan.edge.telemetry import DEADLINE_NS, Histogram, Telemetry
+from udan.edge.telemetry import BIN_RATIO, DEADLINE_NS, Histogram, Telemetry
 
 
 def test_histogram_percentiles_within_a_bin_of_the_exact_ones() -> None:
+    """A percentile is the upper edge of its bin: never below the exact one, and above it by
+    less than one bin (0.9 %: 0.09 ms at 10 ms, where the loop's p99 targets are)."""
     rng = np.random.default_rng(0)
-    samples = (rng.lognormal(mean=13.5, sigma=0.8, size=20_000)).astype(np.int64)  # ~1 ms
-    hist = Histogram()
-    for ns in samples:
-        hist.add(int(ns))
-    for q in (50, 90, 99):
-        exact = np.percentile(samples, q) / 1e6
-        assert abs(hist.percentile(q) - exact) / exact < 0.04  # one bin is 3.7 % wide
+    for mean in (13.5, 15.9):  # ~1 ms and ~8 ms
+        samples = (rng.lognormal(mean=mean, sigma=0.5, size=20_000)).astype(np.int64)
+        hist = Histogram()
+        for ns in samples:
+            hist.add(int(ns))
+        for q in (50, 90, 99):
+            exact = np.percentile(samples, q) / 1e6
+            assert -1e-3 < (hist.percentile(q) - exact) / exact < BIN_RATIO - 1 + 1e-3
     assert hist.summary()["max_ms"] == round(samples.max() / 1e6, 4)
     assert sum(hist.summary()["bin_counts"]) == len(samples)
 
