@@ -176,8 +176,10 @@ class EdgeShell:
 
     async def _wait_event(self) -> FrameTaken | Scene | None:
         """The next news from the perception. Before waiting (the loop is idle until then),
-        the camera's news go to telemetry; the flight recorder sends what it kept only if no
-        step has sent it for a long while (it sends after each step)."""
+        the camera's news go to telemetry, and again after: news told before a frame may come
+        in one read with that frame's scene, and go to telemetry before its step. The flight
+        recorder sends what it kept only if no step has sent it for a long while (it sends
+        after each step)."""
         self._camera_news()
         if self.recorder is not None:
             self.recorder.flush(FLUSH_PENDING)  # after each step, or when they pile up
@@ -190,6 +192,7 @@ class EdgeShell:
             waiting.cancel()
             return None
         event = waiting.result()
+        self._camera_news()
         if event is None and not perception.ended:
             self.telemetry.event("camera_stall", stall_s=self.config.stall_s)
         elif event is None:
