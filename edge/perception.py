@@ -419,7 +419,9 @@ class ThreadPerception(Perception):
     async def next_event(self, timeout: float) -> FrameTaken | Scene | None:
         if self._analysing is not None:
             analysing, self._analysing = self._analysing, None
-            return await analysing
+            scene = await analysing
+            self._pool.submit(self.vision.survey)  # while the loop takes the scene
+            return scene
         while (frame := await self.grabber.next_frame(timeout)) is not None:
             if frame.t_capture_ns >= self._not_before_ns:
                 loop = asyncio.get_running_loop()
@@ -741,6 +743,7 @@ class _Server:
                 continue
             remembered = self.ring is not None and self.ring.remember(frame)
             self.send_scene(scene)
+            self.vision.survey()
             if self.annotator is not None:
                 self._annotate(frame, scene)
             if remembered:

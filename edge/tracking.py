@@ -178,10 +178,13 @@ class CarTracker:
                     found[marker] = quad
         return found
 
-    def update(self, cars: dict[int, np.ndarray], index: int, img: np.ndarray) -> None:
+    def update(
+        self, cars: dict[int, np.ndarray], index: int, img: np.ndarray, *, misses: bool = True
+    ) -> None:
         """The cars found in frame ``index`` of `img`: their tracks move on (and keep the look
         of those decoded); a track missed more than ``lost_after`` frames in a row is dropped
-        (the sweep finds the car again)."""
+        (the sweep finds the car again). ``misses=False``: more cars of a frame already
+        counted (the sweep's), no track missed again."""
         h, w = img.shape
         thick = thickness(np.stack(list(cars.values()))).tolist() if cars else []
         for (marker, corners), thin in zip(cars.items(), thick, strict=True):
@@ -202,7 +205,7 @@ class CarTracker:
                 x1, y1 = min(math.ceil(x1) + 2, w), min(math.ceil(y1) + 2, h)
                 tr.look_box = (x0, y0, x1, y1)
                 tr.look = img[y0:y1, x0:x1].copy()
-        for marker in [m for m, tr in self.tracks.items() if tr.index != index]:
+        for marker in [m for m, tr in self.tracks.items() if misses and tr.index != index]:
             tr = self.tracks[marker]
             tr.misses += 1
             if tr.misses > self._lost_after:

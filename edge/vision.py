@@ -16,11 +16,13 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   under a tilted camera) are searched at twice it, and a still car whose marker fails to decode
   in a frame is seen by its unchanged look.
 - The rest of the image is swept one tile per frame (4 x 3 tiles overlapping by more than a
-  marker), with everything already known painted out first: tracked cars, calibration markers,
-  and cell markers that still look as they did when decoded (normalised correlation). So the
-  sweep decodes only what is new: a car that joined or that its track lost, a changed cell, a
-  calibration marker after a camera move. A sweep takes 12 frames (300 ms at 40 FPS): that is
-  how long a new car or a changed obstacle takes to appear; tracked cars do not wait for it.
+  marker), after the frame's scene is out (:meth:`Vision.survey`: half the vision's time, and
+  no decision waits for it; its finds are in the next scene), with everything already known
+  painted out first: tracked cars, calibration markers, and cell markers that still look as
+  they did when decoded (normalised correlation). So the sweep decodes only what is new: a car
+  that joined or that its track lost, a changed cell, a calibration marker after a camera move.
+  A sweep takes 12 frames (300 ms at 40 FPS): that is how long a new car or a changed obstacle
+  takes to appear; tracked cars do not wait for it.
   Its size gates, search resolution and threshold window follow the size markers should have
   where each tile looks, from the camera model (:class:`_ExpectedSizes`): a tilted camera sees
   markers near it several times larger than far ones, and labs print car markers at other
@@ -296,6 +298,8 @@ class Vision:
         self._small_tile = 0
         self._sweeps = 0
         """Sweeps of the whole image completed."""
+        self._unsurveyed: tuple[Frame, dict[int, np.ndarray]] | None = None
+        """The last frame processed and the cars tracked in it, until :meth:`survey`."""
         self._sizes: _ExpectedSizes | None = None
         self._arena_missing = False
         """The scenes have said that there is no arena (:meth:`_arena_news`)."""
@@ -632,27 +636,25 @@ class Vision:
         )
 
     def process(self, frame: Frame) -> Scene:
-        """The scene in one frame: track the known cars, sweep one tile, convert to the arena."""
+        """The scene in one frame: the known cars tracked (and a calibration marker checked),
+        converted to the arena. The frame's :meth:`survey` is left for later: the caller runs
+        it once the scene is on its way, or this runs it first for the next frame."""
+        self.survey()
         t0 = time.perf_counter_ns()
         img = frame.image
         if img.shape != self.detector.shape:
             self._setup(img.shape)
         cars = self.tracker.track(img, frame.index)
-        swept = self._sweep(img, cars)
-        self._sweep_small(img, cars)
         checked = self._check_corner(img)
         self.tracker.update(cars, frame.index, img)
-        changed = False
-        for marker, quad in [*swept.items(), *checked.items()]:
-            changed |= self._observe_corner(marker, self.detector.refine(img, quad))
-        if changed or (checked and self.fit.checks % len(CORNER_IDS) == 0):
-            self.fit.fit()
+        self._observe(img, checked, every_check=True)
         sightings = self._sightings(frame.index)
         warnings = (self._arena_news(), self._check_height(img, frame.index))
         cells = self._static_cells()
         target = sightings.pop(TARGET_ID, None)
         if target is not None and target.inside:
             cells = {**cells, "target": frozenset([target.cell])}
+        self._unsurveyed = (frame, cars)
         return Scene(
             t_capture_ns=frame.t_capture_ns,
             frame_index=frame.index,
@@ -663,3 +665,30 @@ class Vision:
             t_arrival_ns=frame.t_arrival_ns,
             warnings=tuple(w for w in warnings if w is not None),
         )
+
+    def survey(self) -> None:
+        """The last processed frame's survey, if not run yet: one tile of the sweep (cars the
+        tracks lack, the tile's cell markers, calibration markers) and, while a car is
+        missing, one window of the small-marker sweep. What it finds is in the next scene."""
+        if self._unsurveyed is None:
+            return
+        frame, tracked = self._unsurveyed
+        self._unsurveyed = None
+        if not frame.intact():
+            return  # its lent image has been reused: the next frame's tile waits a frame
+        img, cars = frame.image, dict(tracked)
+        swept = self._sweep(img, cars)
+        self._sweep_small(img, cars)
+        self.tracker.update(
+            {m: q for m, q in cars.items() if m not in tracked}, frame.index, img, misses=False
+        )
+        self._observe(img, swept, every_check=False)
+
+    def _observe(self, img: np.ndarray, corners: dict[int, np.ndarray], every_check: bool) -> None:
+        """Calibration markers found (refined first) into the fit, refitted when the set of
+        markers changed or, for the markers checked one a frame, once a round of checks."""
+        changed = False
+        for marker, quad in corners.items():
+            changed |= self._observe_corner(marker, self.detector.refine(img, quad))
+        if changed or (every_check and corners and self.fit.checks % len(CORNER_IDS) == 0):
+            self.fit.fit()

@@ -231,6 +231,39 @@ def test_the_target_is_followed_from_cell_to_cell(renderers):
     assert scene.cells["obstacle"] == frozenset(LAYOUT["obstacle"])
 
 
+def test_a_frames_survey_runs_after_its_scene_and_its_finds_are_in_the_next():
+    """The sweep (the survey) of a frame runs after its scene is out, by the perception process
+    right away or by the next ``process`` first: both give the same scenes (the flight
+    recorder's replay relies on it). A car that joins is found by a sweep and is in the scene
+    after the one of the frame that found it; a frame whose lent image was reused before its
+    survey is not surveyed."""
+    renderer = Renderer(GEOMETRY, CameraModel(noise_sigma=3))
+    cars = placements(np.random.default_rng(9), 3)
+    eager, lazy = Vision(GEOMETRY), Vision(GEOMETRY)
+    images = [
+        renderer.render(cars[:2] if i < 3 * SWEEP else cars, LAYOUT) for i in range(5 * SWEEP)
+    ]
+    joined = None
+    for i, image in enumerate(images):
+        first = eager.process(Frame(image, 1000 * i, i))
+        eager.survey()
+        second = lazy.process(Frame(image, 1000 * i, i))
+        assert first == dataclasses.replace(second, vision_ns=first.vision_ns)
+        if joined is None and cars[2][0] in eager.tracker.tracks:
+            joined = i
+            assert cars[2][0] not in first.cars  # found by this frame's survey
+        elif joined is not None and i == joined + 1:
+            assert cars[2][0] in first.cars
+    assert joined is not None and joined >= 3 * SWEEP
+    check(first, cars)
+
+    reused = Frame(images[-1], 0, len(images), lease=lambda: False)
+    tile = eager._tile
+    eager.process(reused)
+    eager.survey()
+    assert eager._tile == tile
+
+
 def test_calibration_follows_a_moved_camera():
     """The camera is knocked to another pose mid-run: the vision notices within a few frames,
     reports itself uncalibrated rather than wrong, and recovers without a restart."""
@@ -282,7 +315,8 @@ def test_an_arena_with_calibration_markers_covered_holds_every_car_and_says_why(
     scenes = [run.frame(cars) for _ in range(4 * SWEEP)]
     assert not any(s.calibrated or s.cars for s in scenes)
     warnings = [(i, w) for i, s in enumerate(scenes) for w in s.warnings]
-    assert len(warnings) == 1 and warnings[0][0] == 2 * SWEEP - 1  # the second sweep's last tile
+    # with the scene after the second sweep's last tile (a frame's survey follows its scene)
+    assert len(warnings) == 1 and warnings[0][0] == 2 * SWEEP
     assert warnings[0][1] == (
         "no arena: calibration markers seen: 1, 3 (3 of 0-3 needed); every car is held until "
         "they are"
