@@ -57,6 +57,8 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 
+from udan.edge.pauses import threads_of_this_process
+
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"})
 VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"})
 POLL_S = 0.0005
@@ -295,10 +297,8 @@ def yield_to_dispatch(thread_id: int | None = None) -> None:
 def yield_process_to_dispatch() -> None:
     """Every thread of this process (libraries start some of their own) nicer than the loop,
     as :func:`yield_to_dispatch`; threads started later inherit it from their creator."""
-    tasks = Path("/proc/self/task")
-    if tasks.is_dir():
-        for task in tasks.iterdir():
-            yield_to_dispatch(int(task.name))
+    for tid in threads_of_this_process():
+        yield_to_dispatch(tid)
 
 
 class CameraError(Exception):

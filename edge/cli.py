@@ -327,7 +327,7 @@ async def _drive(args: argparse.Namespace, world: tuple[str, int] | None) -> dic
     # address) while the model loads
     perception: Perception | None = None
     if args.perception == "process":
-        perception = ProcessPerception(args.camera, settings, ring, overlay)
+        perception = ProcessPerception(args.camera, settings, ring, overlay, args.realtime)
     live = None
     try:
         if args.web is not None:

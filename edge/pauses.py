@@ -16,8 +16,13 @@ from __future__ import annotations
 
 import gc
 import os
+from pathlib import Path
 
 REALTIME_PRIORITY = 10  # SCHED_RR priority (1-99): above every ordinary thread, far below IRQs
+PERCEPTION_PRIORITY = 5
+"""The perception process's SCHED_RR priority under ``--realtime``: below the loop, which
+preempts it for every send, and above every ordinary thread (a camera's driver, a renderer, a
+web page), which then cannot hold a frame's analysis up."""
 #: Every this many collections between steps, a full one (the others: the youngest objects).
 FULL_COLLECTION_EVERY = 100
 
@@ -43,6 +48,20 @@ def run_realtime(priority: int = REALTIME_PRIORITY) -> None:
     (``SCHED_RESET_ON_FORK``): the perception process and the ``--sim`` world must not outrank
     it."""
     os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+
+
+def threads_of_this_process() -> list[int]:
+    """The native ids of this process's threads (libraries start some of their own); none
+    where ``/proc`` does not list them."""
+    tasks = Path("/proc/self/task")
+    return [int(task.name) for task in tasks.iterdir()] if tasks.is_dir() else []
+
+
+def run_process_realtime(priority: int = PERCEPTION_PRIORITY) -> None:
+    """Schedule every thread of this process ``SCHED_RR`` at ``priority``, and the threads they
+    start later with it; raises ``PermissionError`` without ``CAP_SYS_NICE``."""
+    for tid in threads_of_this_process():
+        os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
 
 
 def scheduler() -> str:

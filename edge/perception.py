@@ -59,7 +59,7 @@ from udan.edge.camera import (
 )
 from udan.edge.geometry import ArenaGeometry
 from udan.edge.overlay import NO_OVERLAY, Annotator, OverlaySettings
-from udan.edge.pauses import freeze_garbage
+from udan.edge.pauses import freeze_garbage, run_process_realtime, scheduler
 from udan.edge.sidecar import (
     MESSAGE_BYTES,
     STOP_TIMEOUT_S,
@@ -306,6 +306,11 @@ class Perception(ABC):
     def camera_info(self) -> dict[str, Any]:
         """The camera as opened (:func:`camera_facts`); empty until :meth:`wait_ready`."""
 
+    @property
+    @abstractmethod
+    def scheduler(self) -> str:
+        """The scheduling policy the vision runs under ("SCHED_RR" or "SCHED_OTHER")."""
+
     @abstractmethod
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         """What happened to the camera since the last call ("camera_lost", "camera_back")."""
@@ -380,6 +385,10 @@ class ThreadPerception(Perception):
     def camera_info(self) -> dict[str, Any]:
         return camera_facts(self.grabber.source)
 
+    @property
+    def scheduler(self) -> str:
+        return "SCHED_OTHER"  # threads of a real-time loop start ordinary
+
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         return self.grabber.take_news()
 
@@ -448,13 +457,16 @@ class ProcessPerception(Perception):
         settings: VisionSettings = VisionSettings(),
         ring: RingSpec | None = None,
         overlay: OverlaySettings = NO_OVERLAY,
+        realtime: bool = False,
     ) -> None:
         """Start the perception process (it opens ``camera`` and builds its vision while the
         caller goes on; :meth:`wait_ready` waits for that); with ``ring``, it keeps the frames
-        it analysed there for the flight recorder (:class:`FrameRing`)."""
+        it analysed there for the flight recorder (:class:`FrameRing`); ``realtime``: it runs
+        ``SCHED_RR`` below the loop (:data:`~udan.edge.pauses.PERCEPTION_PRIORITY`)."""
         self.camera = camera
         self.overlay = overlay
         self.sweep_frames = 0
+        self._scheduler = "SCHED_OTHER"
         self._camera_info: dict[str, Any] = {}
         self._counts: dict[str, int] = {"captured": 0, "dropped": 0}
         self._news: list[tuple[str, dict[str, Any]]] = []
@@ -474,6 +486,8 @@ class ProcessPerception(Perception):
             args += ["--ring", ring.name, "--ring-rate", str(ring.rate)]
         if overlay.wanted:
             args += ["--overlay", overlay.to_json()]
+        if realtime:
+            args.append("--realtime")
         self._sock, self._proc = spawn("udan.edge.perception", args)
 
     def wait_ready(self) -> None:
@@ -496,7 +510,7 @@ class ProcessPerception(Perception):
             self._stream_ended = True
             raise _ERRORS.get(body[0], PerceptionError)(body[1])
         self._sock.setblocking(False)
-        self.sweep_frames, self._camera_info = int(body[0]), body[1]
+        self.sweep_frames, self._camera_info, self._scheduler = int(body[0]), body[1], body[2]
 
     @property
     def pid(self) -> int:
@@ -517,6 +531,10 @@ class ProcessPerception(Perception):
     @property
     def camera_info(self) -> dict[str, Any]:
         return self._camera_info
+
+    @property
+    def scheduler(self) -> str:
+        return self._scheduler
 
     def take_news(self) -> list[tuple[str, dict[str, Any]]]:
         news, self._news = self._news, []
@@ -770,12 +788,14 @@ def serve(
     settings: VisionSettings,
     ring: RingSpec | None = None,
     overlay: OverlaySettings = NO_OVERLAY,
+    realtime: bool = False,
 ) -> int:
     """The perception process: open ``camera`` and build the vision, say "ready" with the
-    camera's granted mode (or the error, one line), wait for "start", then send scenes until
-    told to stop or the edge goes away; with ``ring``, keep frames for the flight recorder
-    (:class:`FrameRing`); draw the steps onto the frames when ``overlay`` asks (the video is
-    finished on the way out)."""
+    camera's granted mode and the scheduling policy (or the error, one line), wait for
+    "start", then send scenes until told to stop or the edge goes away; with ``ring``, keep
+    frames for the flight recorder (:class:`FrameRing`); draw the steps onto the frames when
+    ``overlay`` asks (the video is finished on the way out). ``realtime``: every thread
+    ``SCHED_RR`` below the loop; else nicer than it."""
     ignore_interrupts()
     sock = socket.socket(fileno=fd)
     try:
@@ -791,14 +811,19 @@ def serve(
     server = _Server(sock, grabber, vision, frames, annotator)
     try:
         freeze_garbage()
-        sock.send(pickle.dumps(("ready", vision.sweep_frames, camera_facts(source))))
+        if realtime:
+            with contextlib.suppress(PermissionError):  # the report says SCHED_OTHER
+                run_process_realtime()
+        ready = ("ready", vision.sweep_frames, camera_facts(source), scheduler())
+        sock.send(pickle.dumps(ready))
         while (data := sock.recv(MESSAGE_BYTES)) and pickle.loads(data)[0] != "start":
             server.control(data)
             if server.stopping.is_set():  # stopped before the run began
                 return 0
         if not data:
             return 0
-        yield_process_to_dispatch()
+        if not realtime:
+            yield_process_to_dispatch()
         grabber.start()
         server.serve()
         if annotator is not None:
@@ -830,9 +855,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ring", help="keep frames for the flight recorder under this name")
     parser.add_argument("--ring-rate", type=float, default=0.0)
     parser.add_argument("--overlay", type=OverlaySettings.from_json, default=NO_OVERLAY)
+    parser.add_argument("--realtime", action="store_true")
     args = parser.parse_args(argv)
     ring = None if args.ring is None else RingSpec(args.ring, args.ring_rate)
-    return serve(args.fd, args.camera, args.vision, ring, args.overlay)
+    return serve(args.fd, args.camera, args.vision, ring, args.overlay, args.realtime)
 
 
 if __name__ == "__main__":

@@ -140,6 +140,7 @@ class EdgeShell:
         report["link"] = self.link.counters()
         perception = self.perception
         report["camera"] = {**perception.counters, **perception.camera_info}
+        report["perception_scheduler"] = perception.scheduler
         if perception.video is not None:
             report["camera"]["video"] = perception.video
         report["gc"] = {

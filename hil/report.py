@@ -335,6 +335,7 @@ def write_report(
         "p99_ms": {name: edge["spans"][name]["p99_ms"] for name in SPAN_TITLES},
         "edge_memory_mb": edge.get("memory_mb"),
         "edge_scheduler": edge.get("scheduler"),
+        "perception_scheduler": edge.get("perception_scheduler"),
         "cars_scheduler": world.get("scheduler"),
         "exits": result["exits"],
     }

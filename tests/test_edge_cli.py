@@ -22,7 +22,13 @@ import pytest
 from udan.edge import cli
 from udan.edge.calibration import CameraCalibration, save_calibration
 from udan.edge.geometry import ArenaGeometry
-from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
+from udan.edge.pauses import (
+    PERCEPTION_PRIORITY,
+    REALTIME_PRIORITY,
+    freeze_garbage,
+    run_realtime,
+    scheduler,
+)
 from udan.edge.transport import free_udp_port
 from udan.fleetfile import write_fleet
 from udan.hil.render import CameraModel, Renderer
@@ -162,9 +168,18 @@ def _world_and_edge(
 
 
 def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Path) -> None:
-    """SIGTERM to the edge latches every car's estop; the perception process ends with it."""
+    """SIGTERM to the edge latches every car's estop; the perception process ends with it.
+    With ``--realtime`` every thread of the perception process runs SCHED_RR below the loop."""
     with _world_and_edge(tmp_path, fleet) as (control, edge, camera):
-        assert len(_perception_processes(camera)) == 1
+        (perception,) = _perception_processes(camera)
+        threads = [int(t) for t in os.listdir(f"/proc/{perception}/task")]
+        policies = {
+            (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in threads
+        }
+        assert policies == (
+            {(os.SCHED_RR, PERCEPTION_PRIORITY)} if REALTIME else {(os.SCHED_OTHER, 0)}
+        )
+        assert PERCEPTION_PRIORITY < REALTIME_PRIORITY
         edge.send_signal(signal.SIGTERM)
         assert edge.wait(timeout=20) == 0, edge.stderr.read()
         cars = _ask(control, {"op": "cars"})["cars"]
@@ -175,6 +190,7 @@ def test_sigterm_sends_an_emergency_stop_to_every_car(tmp_path: Path, fleet: Pat
         assert report["counts"]["late_sends"] <= 1  # see tests/hil/test_loop.py::_assert_safe
         assert report["counts"]["late_executions"] == 0
         assert report["scheduler"] == ("SCHED_RR" if REALTIME else "SCHED_OTHER")
+        assert report["perception_scheduler"] == report["scheduler"]
         # the garbage collector ran between steps, at least once after each one
         assert report["gc"]["collections"] >= report["counts"]["steps"]
         # every frame the perception process read was analysed for the loop or counted dropped
