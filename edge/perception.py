@@ -405,7 +405,10 @@ class ThreadPerception(Perception):
             self._annotator.step(overlay)
 
     def _analyse(self, frame: Frame) -> Scene:
+        """The scene and the frame's survey: after it, the survey would hold the interpreter
+        lock the loop needs to take the scene."""
         scene = self.vision.process(frame)
+        self.vision.survey()
         if self._annotator is not None:
             self._annotator.frame(frame, scene)
         if self.ring is not None:
@@ -428,9 +431,7 @@ class ThreadPerception(Perception):
     async def next_event(self, timeout: float) -> FrameTaken | Scene | None:
         if self._analysing is not None:
             analysing, self._analysing = self._analysing, None
-            scene = await analysing
-            self._pool.submit(self.vision.survey)  # while the loop takes the scene
-            return scene
+            return await analysing
         while (frame := await self.grabber.next_frame(timeout)) is not None:
             if frame.t_capture_ns >= self._not_before_ns:
                 loop = asyncio.get_running_loop()
@@ -677,7 +678,12 @@ class _Server:
     it there and then: no event loop between the frame's arrival and its analysis (an asyncio
     hand-over cost ~0.3 ms a frame). The frame's image is lent by a source that can (the
     virtual camera's shared slot, no copy), and a scene counts only if the image was still the
-    frame's after the analysis; otherwise it is dropped and counted."""
+    frame's after the analysis; otherwise it is dropped and counted.
+
+    The frame's survey (:meth:`~udan.edge.vision.Vision.survey`, half the vision's time) runs
+    after its scene is sent when the process is real-time below the loop (the loop preempts it
+    at once), and before otherwise: an ordinary one would compete with the loop and the cars
+    for the cores while the step is decided and sent (docs/timing.md has both measured)."""
 
     POLL_S = 0.1
     """How often a frame wait wakes to look for a stop (a stop also wakes it at once)."""
@@ -746,6 +752,7 @@ class _Server:
 
     def serve(self) -> None:
         threading.Thread(target=self._listen, name="control", daemon=True).start()
+        survey_after = scheduler() == "SCHED_RR"  # below the loop, which preempts it
         while not self.stopping.is_set():
             frame = self.grabber.wait_frame(self.POLL_S)
             for kind, fields in self.grabber.take_news():
@@ -756,12 +763,14 @@ class _Server:
                 continue
             self.send("taken", frame.index, frame.t_capture_ns)
             scene = self.vision.process(frame)
+            if not survey_after:
+                self.vision.survey()
             if not frame.intact():
                 self.overwritten += 1
                 continue
             remembered = self.ring is not None and self.ring.remember(frame)
             self.send_scene(scene)
-            self.vision.survey()
+            self.vision.survey()  # nothing left if it ran before
             if self.annotator is not None:
                 self._annotate(frame, scene)
             if remembered:

@@ -16,8 +16,8 @@ few candidates. This module puts the stages together (and sweeps); each concern 
   under a tilted camera) are searched at twice it, and a still car whose marker fails to decode
   in a frame is seen by its unchanged look.
 - The rest of the image is swept one tile per frame (4 x 3 tiles overlapping by more than a
-  marker), after the frame's scene is out (:meth:`Vision.survey`: half the vision's time, and
-  no decision waits for it; its finds are in the next scene), with everything already known
+  marker), after the frame's scene is made (:meth:`Vision.survey`: half the vision's time,
+  which the scene need not wait for; its finds are in the next scene), with everything known
   painted out first: tracked cars, calibration markers, and cell markers that still look as
   they did when decoded (normalised correlation). So the sweep decodes only what is new: a car
   that joined or that its track lost, a changed cell, a calibration marker after a camera move.
