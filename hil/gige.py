@@ -89,8 +89,8 @@ def libaravis() -> ctypes.CDLL:
 
 def hold(seconds: float) -> None:
     """Wait ``seconds``, the last ``HOLD_AWAKE_S`` of them awake: a camera's hold is its own
-    hardware's, and a sleeping thread on a busy host wakes late (by 2.3 ms at the median in a
-    loaded test run, which the edge then measured as a 7.3 ms hold)."""
+    hardware's, and a sleeping thread on a busy host wakes late (in a loaded test run, with
+    the hold asleep, the edge measured a 5 ms hold as 7.3 ms)."""
     until = time.monotonic() + seconds
     time.sleep(max(0.0, seconds - HOLD_AWAKE_S))
     while time.monotonic() < until:
