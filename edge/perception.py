@@ -831,7 +831,7 @@ def serve(
                 return 0
         if not data:
             return 0
-        if not realtime:
+        if scheduler() != "SCHED_RR":  # ordinary (not asked, or refused): nicer than the loop
             yield_process_to_dispatch()
         grabber.start()
         server.serve()

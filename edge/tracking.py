@@ -205,7 +205,9 @@ class CarTracker:
                 x1, y1 = min(math.ceil(x1) + 2, w), min(math.ceil(y1) + 2, h)
                 tr.look_box = (x0, y0, x1, y1)
                 tr.look = img[y0:y1, x0:x1].copy()
-        for marker in [m for m, tr in self.tracks.items() if misses and tr.index != index]:
+        if not misses:
+            return
+        for marker in [m for m, tr in self.tracks.items() if tr.index != index]:
             tr = self.tracks[marker]
             tr.misses += 1
             if tr.misses > self._lost_after:
