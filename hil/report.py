@@ -337,6 +337,7 @@ def write_report(
         "edge_scheduler": edge.get("scheduler"),
         "perception_scheduler": edge.get("perception_scheduler"),
         "cars_scheduler": world.get("scheduler"),
+        "esp_scheduler": world.get("esp_scheduler"),
         "exits": result["exits"],
     }
     if "sightings" in result:

@@ -1,10 +1,11 @@
 """The simulated arena the mock cars drive in, seen by the virtual camera:
 ``python -m udan.hil.world``.
 
-One process holds the world and every mock car of the fleet (each a real UDP socket, ESP8266
-mock, pty serial line and motor controller: ``udan.firmware_mock.udp.MockCar``); it starts the
-virtual camera as a process of its own, which renders a mirror of the world at 40 FPS into shared
-memory (``virtual://NAME``).
+One process holds the world and every mock car's motor controller (``MotorEnd``, on its end of
+a pty serial line); it starts the cars' ESP8266 mocks (each a real UDP socket and the firmware,
+``udan.firmware_mock.udp.EspCar``) as a process of their own, which opens those serial lines by
+name (``udan.hil.esp``), and the virtual camera as another, which renders a mirror of the world
+at 40 FPS into shared memory (``virtual://NAME``).
 The edge runs as a separate process and sees none of this except camera frames and UDP.
 
 Where moves end is decided here (``HilWorld``, the firmware's ``World``): each car has a true,
@@ -51,11 +52,13 @@ from udan.edge.sidecar import exit_with_parent
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
 from udan.envs.rules import FREE, OBSTACLE, WALL, WATER
+from udan.firmware_mock.faults import Faults
 from udan.firmware_mock.firmware import CarTiming
 from udan.firmware_mock.fleet import load_fleet
 from udan.firmware_mock.motor import Pose, Trajectory, wrap
-from udan.firmware_mock.udp import MockCar
+from udan.firmware_mock.udp import MotorEnd, car_counters
 from udan.fleetfile import FleetFileError
+from udan.hil.esp import EspProcess
 from udan.hil.motion import (
     LEVELS,
     CarMotion,
@@ -534,8 +537,13 @@ class _Control(asyncio.DatagramProtocol):
         self.transport = transport  # type: ignore[assignment]
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
+        task = asyncio.ensure_future(self._answer(data, addr))
+        self.server.requests.add(task)
+        task.add_done_callback(self.server.requests.discard)
+
+    async def _answer(self, data: bytes, addr: Any) -> None:
         try:
-            reply = {"ok": True, **self.server.handle(json.loads(data))}
+            reply = {"ok": True, **await self.server.handle(json.loads(data))}
         except (ValueError, KeyError, TypeError) as err:
             reply = {"ok": False, "error": str(err)}
         if self.transport is not None:
@@ -543,7 +551,8 @@ class _Control(asyncio.DatagramProtocol):
 
 
 class WorldServer:
-    """The world process: cars, world, camera, episodes, control."""
+    """The world process: motor controllers, world, episodes, control; the cars' ESP8266s and
+    the camera in processes of their own."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
@@ -560,9 +569,16 @@ class WorldServer:
             args.episodes_per_cell,
         )
         self.episode_index = -1
-        self.cars: dict[int, MockCar] = {}
+        self.motors: dict[int, MotorEnd] = {}
+        self.requests: set[asyncio.Task[None]] = set()
 
-    def handle(self, request: dict[str, Any]) -> dict[str, Any]:
+    def _motor(self, request: dict[str, Any]) -> tuple[int, MotorEnd]:
+        car = int(request["car"])
+        if car not in self.motors:
+            raise ValueError(f"unknown car {car}")
+        return car, self.motors[car]
+
+    async def handle(self, request: dict[str, Any]) -> dict[str, Any]:
         """One control request -> the answer's fields."""
         op = request["op"]
         if op == "episode":
@@ -570,20 +586,25 @@ class WorldServer:
         if op == "state":
             return {**self.world.state(), "episode": self.episode_index}
         if op == "counters":
-            return {"cars": {str(c): car.counters() for c, car in self.cars.items()}}
+            radios = await self.esp.ask("counters")
+            counters = {c: car_counters(radios[c], m.counters()) for c, m in self.motors.items()}
+            return {"cars": {str(c): v for c, v in counters.items()}}
         if op == "cars":
-            return {"cars": {str(c): car.state() for c, car in self.cars.items()}}
+            radios = await self.esp.ask("state")
+            return {"cars": {str(c): {**radios[c], **m.state()} for c, m in self.motors.items()}}
         if op == "faults":
-            self.cars[int(request["car"])].firmware.apply_faults(request["set"])
+            car, motor = self._motor(request)
+            motor.faults.update(request["set"])  # checked here first: both halves or neither
+            await self.esp.ask("faults", car, request["set"])
             return {}
         if op == "reboot":
-            self.cars[int(request["car"])].firmware.reboot()
+            await self.esp.ask("reboot", self._motor(request)[0])
             return {}
         if op == "cut":
             share = float(request.get("share", 0.5))
             if not 0 < share < 1:
                 raise ValueError(f"cut share {share} outside 0-1")
-            self.cars[int(request["car"])].controller.drive.cut_next_move(share)
+            self._motor(request)[1].controller.drive.cut_next_move(share)
             return {}
         if op == "leave":
             self.world.remove(int(request["car"]))
@@ -608,7 +629,7 @@ class WorldServer:
                 return {"done": True}
         assert episode is not None
         arena = episode_arena(self.args.task, episode)
-        cars = sorted(self.cars)[: episode.agents]
+        cars = sorted(self.motors)[: episode.agents]
         if len(cars) < episode.agents:
             raise ValueError(f"episode needs {episode.agents} cars, the fleet has {len(cars)}")
         cells = {car: tuple(int(v) for v in arena.pos[0, i]) for i, car in enumerate(cars)}
@@ -627,30 +648,34 @@ class WorldServer:
         edge_host, _, edge_port = args.edge.rpartition(":")
         timing = CarTiming(cell_time_s=args.cell_time_ms / 1000, accel_share=self.level.accel_share)
         freeze_garbage()  # real cars have no garbage collector to pause them
-        for i, spec in enumerate(self.specs):
-            car = MockCar(
-                spec, edge=(edge_host, int(edge_port)), world=self.world, timing=timing,
-                seed=args.seed + i,
-            )  # fmt: skip
-            await car.start()
-            self.cars[spec.car_id] = car
         model = {
             "tilt_deg": args.tilt, "k1": args.k1, "noise_sigma": args.noise,
             "blur_sigma": args.blur, "seed": args.seed,
         }  # fmt: skip
-        self.camera = CameraProcess(
-            self.world,
-            {
-                "model": model,
-                "geometry": self.geometry,
-                "name": args.camera_name,
-                "fps": args.fps,
-                "markers": self.world.markers,
-            },
-        )
-        control, _ = await loop.create_datagram_endpoint(
-            lambda: _Control(self), local_addr=("127.0.0.1", args.control_port)
-        )
+        camera_config = {
+            "model": model,
+            "geometry": self.geometry,
+            "name": args.camera_name,
+            "fps": args.fps,
+            "markers": self.world.markers,
+        }
+        with contextlib.ExitStack() as started:  # a part that fails to start stops the others
+            started.callback(self._close_motors)
+            for spec in self.specs:
+                faults = Faults.from_mapping(spec.faults)
+                self.motors[spec.car_id] = MotorEnd(spec, self.world, timing, faults)
+            self.esp = EspProcess(
+                self.specs, {c: m.tty_path for c, m in self.motors.items()},
+                edge=(edge_host, int(edge_port)), timing=timing, seed=args.seed,
+                realtime=args.realtime,
+            )  # fmt: skip
+            started.callback(self.esp.stop)
+            self.camera = CameraProcess(self.world, camera_config)
+            started.callback(self.camera.stop)
+            control, _ = await loop.create_datagram_endpoint(
+                lambda: _Control(self), local_addr=("127.0.0.1", args.control_port)
+            )
+            started.pop_all()  # running: stopped below, counters kept
         stop = asyncio.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
@@ -658,16 +683,19 @@ class WorldServer:
             "ready": True,
             "control_port": control.get_extra_info("sockname")[1],
             "camera": f"virtual://{args.camera_name}",
-            "cars": [{"id": c, "address": list(car.address or ())} for c, car in self.cars.items()],
+            "cars": [{"id": c, "address": list(a)} for c, a in self.esp.addresses.items()],
         }
         print(json.dumps(ready), flush=True)
         try:
             await stop.wait()
         finally:
             camera = self.camera.stop()
-            counters = {str(c): car.counters() for c, car in self.cars.items()}
-            for car in self.cars.values():
-                car.close()
+            radios = self.esp.stop()  # LEAVE and STOP first, as the cars' power goes
+            counters = {
+                str(c): car_counters(radios["cars"][c], m.counters()) if radios else m.counters()
+                for c, m in self.motors.items()
+            }
+            self._close_motors()
             control.close()
             if args.truth is not None:
                 self.world.write_history(args.truth)
@@ -676,7 +704,12 @@ class WorldServer:
             **camera,
             "cars": counters,
             "scheduler": scheduler(),
+            "esp_scheduler": radios.get("scheduler"),
         }
+
+    def _close_motors(self) -> None:
+        for motor in self.motors.values():
+            motor.close()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -703,7 +736,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", type=Path, help="write where every car was, when, here at exit")
     p.add_argument(
         "--realtime", action="store_true",
-        help="the cars' event loop at real-time priority (SCHED_RR; needs CAP_SYS_NICE)",
+        help="the cars' processes at real-time priority (SCHED_RR; needs CAP_SYS_NICE)",
     )  # fmt: skip
     return p
 

@@ -222,6 +222,68 @@ def test_a_perception_process_killed_mid_run_stops_every_car(tmp_path: Path, fle
         assert all(c["estopped"] for c in cars.values()), cars
 
 
+def _udp_socket_owner(port: int) -> int | None:
+    """The pid of the process holding the loopback UDP socket bound to ``port``."""
+    inodes = {
+        fields[9]
+        for line in Path("/proc/net/udp").read_text().splitlines()[1:]
+        if (fields := line.split())[1] == f"0100007F:{port:04X}"
+    }
+    for proc in Path("/proc").iterdir():
+        with contextlib.suppress(OSError):
+            for fd in (proc / "fd").iterdir():
+                link = os.readlink(fd)
+                if link.startswith("socket:[") and link[8:-1] in inodes:
+                    return int(proc.name)
+    return None
+
+
+def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
+    """The HIL world runs the cars' ESP8266 mocks in a child process (their sockets are its);
+    a fault reaches both halves of a car or neither; a killed world takes that process along."""
+    edge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    edge.bind(("127.0.0.1", 0))
+    camera = f"udan-test-{time.monotonic_ns()}"
+    world = subprocess.Popen(
+        [
+            sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet), "--edge",
+            f"127.0.0.1:{edge.getsockname()[1]}", "--camera-name", camera,
+        ],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        ready = json.loads(world.stdout.readline())
+        ports = [car["address"][1] for car in ready["cars"]]
+        owners = {_udp_socket_owner(port) for port in ports}
+        assert len(owners) == 1 and None not in owners and world.pid not in owners, owners
+        (radios,) = owners
+        edge.settimeout(5)
+        assert edge.recvfrom(256)[1][1] in ports  # a JOIN, from a car's socket
+        control = ready["control_port"]
+        assert _ask(control, {"op": "faults", "car": 1, "set": {"loss": 0.25}})["ok"]
+        refused = _ask(control, {"op": "faults", "car": 1, "set": {"loss": 0.5, "reorder": 7}})
+        assert not refused["ok"] and "probability" in refused["error"], refused
+        assert not _ask(control, {"op": "faults", "car": 9, "set": {}})["ok"]
+        cars = _ask(control, {"op": "cars"})["cars"]
+        assert cars["1"]["faults"]["loss"] == 0.25 and cars["2"]["faults"]["loss"] == 0
+        assert cars["1"]["pose"] and cars["1"]["session"] is not None
+        counters = _ask(control, {"op": "counters"})["cars"]["1"]
+        assert counters["executed"] == 0 and counters["serial_bad_frames"] == 0
+        assert "link_in" in counters
+        world.kill()
+        world.wait(5)
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{radios}").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not Path(f"/proc/{radios}").exists(), "the ESP8266 process outlived its world"
+    finally:
+        edge.close()
+        if world.poll() is None:
+            world.kill()
+            world.wait(5)
+        world.stdout.close()
+
+
 @pytest.mark.parametrize("perception", ["process", "thread"])
 def test_sim_runs_the_whole_loop_and_reports(tmp_path: Path, perception: str) -> None:
     """The demo's command at a small size: world and edge processes (and the perception
