@@ -396,12 +396,17 @@ class MotorController:
 
 
 class SerialMotors:
-    """The ESP8266's end of the serial line: MOVE/STOP out, STATE in (pyserial on a tty)."""
+    """The ESP8266's end of the serial line: MOVE/STOP out, STATE in (pyserial on a tty).
+
+    When the controller's end is gone (its process ended: the pty hangs up), the line is
+    quiet from then on, as a UART whose peer lost power: nothing comes in, what goes out is lost.
+    """
 
     def __init__(self, port: serial.Serial, on_change: Callable[[], None] = lambda: None) -> None:
         self.port = port
         self.on_change = on_change
         self.deframer = sl.Deframer()
+        self.hung_up = False
         self._telemetry = Telemetry()
         asyncio.get_running_loop().add_reader(port.fileno(), self._readable)
 
@@ -409,18 +414,34 @@ class SerialMotors:
         """MOVE over the line (a STOP command too, so its seq is reported as done), with the
         command's target and measured pose."""
         fields = wire.guide_payload(guidance)
-        self.port.write(sl.frame(sl.encode_message(sl.MOVE, seq=seq, action=action, **fields)))
+        self._write(sl.frame(sl.encode_message(sl.MOVE, seq=seq, action=action, **fields)))
 
     def stop(self, reason: int) -> None:
         """STOP over the line."""
-        self.port.write(sl.frame(sl.encode_message(sl.STOP, reason=reason)))
+        self._write(sl.frame(sl.encode_message(sl.STOP, reason=reason)))
+
+    def _write(self, data: bytes) -> None:
+        if self.hung_up:
+            return
+        try:
+            self.port.write(data)
+        except (serial.SerialException, OSError):
+            self._hang_up()
+
+    def _hang_up(self) -> None:
+        self.hung_up = True
+        asyncio.get_running_loop().remove_reader(self.port.fileno())
 
     def telemetry(self) -> Telemetry:
         """The controller's last STATE report."""
         return self._telemetry
 
     def _readable(self) -> None:
-        data = self.port.read(self.port.in_waiting or 1)
+        try:
+            data = self.port.read(self.port.in_waiting or 1)
+        except (serial.SerialException, OSError):
+            self._hang_up()
+            return
         for _, f in self.deframer.messages(data, (sl.STATE,)):
             self._telemetry = Telemetry(
                 row=f["row"],
@@ -435,5 +456,6 @@ class SerialMotors:
 
     def close(self) -> None:
         """Stop listening and close the port."""
-        asyncio.get_running_loop().remove_reader(self.port.fileno())
+        if not self.hung_up:
+            asyncio.get_running_loop().remove_reader(self.port.fileno())
         self.port.close()

@@ -338,6 +338,7 @@ def write_report(
         "perception_scheduler": edge.get("perception_scheduler"),
         "cars_scheduler": world.get("scheduler"),
         "esp_scheduler": world.get("esp_scheduler"),
+        "camera_scheduler": world.get("camera_scheduler"),
         "exits": result["exits"],
     }
     if "sightings" in result:

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from udan.edge.geometry import ArenaGeometry
-from udan.edge.pauses import freeze_garbage, run_realtime, scheduler
+from udan.edge.pauses import freeze_garbage, run_process_realtime, run_realtime, scheduler
 from udan.edge.sidecar import exit_with_parent
 from udan.envs.arena import ArenaBatch, ArenaConfig
 from udan.envs.errors import EnvConfigError, OneLineParser, parse_range
@@ -409,6 +409,11 @@ class HilWorld:
 
 #: The camera process yields the CPU to the cars and the edge (Unix niceness, higher is nicer).
 CAMERA_NICENESS = 10
+CAMERA_PRIORITY = 7
+"""Under ``--realtime`` the camera is SCHED_RR at this priority instead: a camera's readout is
+its own hardware's, never held up by the host's load, so the renderer that stands for it runs
+above the perception process (5) and ordinary processes, below the edge's loop and the cars
+(10), whose CPU it must not take."""
 CAMERA_SLOTS = 8
 """Frames the virtual camera's shared memory holds (200 ms at 40 FPS): the perception process
 is lent its frame in place, and the flight recorder's frame ring copies a decision's frame out
@@ -469,7 +474,10 @@ class CameraProcess:
 
 def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
     """The camera process: render the mirrored world until told to stop (or the world dies)."""
-    os.nice(CAMERA_NICENESS)
+    if config["realtime"]:
+        run_process_realtime(CAMERA_PRIORITY)
+    else:
+        os.nice(CAMERA_NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the world, which stops us
     try:
         model = CameraModel(**config["model"])
@@ -521,6 +529,7 @@ def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
             "p50": round(float(np.median(ms)), 3),
             "p99": round(float(np.percentile(ms, 99)), 3),
         },
+        "camera_scheduler": scheduler(),
     }
     with contextlib.suppress(OSError):
         conn.send(("summary", summary))
@@ -658,6 +667,7 @@ class WorldServer:
             "name": args.camera_name,
             "fps": args.fps,
             "markers": self.world.markers,
+            "realtime": args.realtime,
         }
         with contextlib.ExitStack() as started:  # a part that fails to start stops the others
             started.callback(self._close_motors)

@@ -32,6 +32,7 @@ from udan.edge.pauses import (
 from udan.edge.transport import free_udp_port
 from udan.fleetfile import write_fleet
 from udan.hil.render import CameraModel, Renderer
+from udan.hil.world import CAMERA_NICENESS, CAMERA_PRIORITY
 from udan.models import bundled_policy
 
 UDAN_EDGE = str(Path(sys.executable).with_name("udan-edge"))
@@ -238,9 +239,23 @@ def _udp_socket_owner(port: int) -> int | None:
     return None
 
 
+def _maps(pid: int) -> str:
+    """What process ``pid`` has mapped (empty if it is gone)."""
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/maps").read_text()
+    return ""
+
+
+def _schedule(tid: int) -> tuple[int, int]:
+    """(policy, priority) of thread ``tid``."""
+    policy = os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK
+    return policy, os.sched_getparam(tid).sched_priority
+
+
 def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
     """The HIL world runs the cars' ESP8266 mocks in a child process (their sockets are its);
-    a fault reaches both halves of a car or neither; a killed world takes that process along."""
+    a fault reaches both halves of a car or neither; a killed world takes that process along.
+    With ``--realtime`` the radios run SCHED_RR as the world does, and the camera below them."""
     edge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     edge.bind(("127.0.0.1", 0))
     camera = f"udan-test-{time.monotonic_ns()}"
@@ -248,6 +263,7 @@ def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
         [
             sys.executable, "-m", "udan.hil.world", "--fleet", str(fleet), "--edge",
             f"127.0.0.1:{edge.getsockname()[1]}", "--camera-name", camera,
+            *(["--realtime"] if REALTIME else []),
         ],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -257,6 +273,15 @@ def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
         owners = {_udp_socket_owner(port) for port in ports}
         assert len(owners) == 1 and None not in owners and world.pid not in owners, owners
         (radios,) = owners
+        children = Path(f"/proc/{world.pid}/task/{world.pid}/children").read_text().split()
+        (camera_pid,) = [c for c in map(int, children) if camera in _maps(c)]
+        camera_threads = {_schedule(int(t)) for t in os.listdir(f"/proc/{camera_pid}/task")}
+        if REALTIME:  # the radios' event loop as the world's, every camera thread below them
+            assert _schedule(radios) == (os.SCHED_RR, REALTIME_PRIORITY)
+            assert camera_threads == {(os.SCHED_RR, CAMERA_PRIORITY)}
+        else:
+            assert _schedule(radios) == (os.SCHED_OTHER, 0)
+            assert os.getpriority(os.PRIO_PROCESS, camera_pid) == CAMERA_NICENESS
         edge.settimeout(5)
         assert edge.recvfrom(256)[1][1] in ports  # a JOIN, from a car's socket
         control = ready["control_port"]

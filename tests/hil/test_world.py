@@ -56,6 +56,7 @@ def test_the_camera_process_shows_the_world_and_stops_cleanly() -> None:
         "name": name,
         "fps": 40.0,
         "markers": MARKERS,
+        "realtime": False,
     }
     camera = CameraProcess(world, config)
     try:
