@@ -130,8 +130,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--timeout", type=float, help="give up after this long (s)")
     run.add_argument(
         "--edge-realtime", action="store_true",
-        help="udan-edge --realtime, and the mock cars' process at real-time priority too "
-        "(needs CAP_SYS_NICE)",
+        help="udan-edge --realtime, and the mock cars' processes and the virtual camera at "
+        "real-time priority too (needs CAP_SYS_NICE)",
     )  # fmt: skip
     run.add_argument(
         "--camera", choices=("virtual", "gige"), default="virtual",
