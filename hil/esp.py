@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import multiprocessing
 import signal
 from dataclasses import asdict
 from multiprocessing.connection import Connection
@@ -24,8 +23,8 @@ from udan.firmware_mock.faults import Faults
 from udan.firmware_mock.firmware import CarTiming
 from udan.firmware_mock.fleet import CarSpec
 from udan.firmware_mock.udp import EspCar
+from udan.hil.children import Child
 
-START_TIMEOUT_S = 60.0
 ANSWER_TIMEOUT_S = 10.0
 
 
@@ -50,18 +49,11 @@ class EspProcess:
             "timing": asdict(timing),
             "realtime": realtime,
         }
-        context = multiprocessing.get_context("spawn")
-        self._conn, child = context.Pipe()
-        self._process = context.Process(
-            target=_esp_main, args=(child, config), name="esp8266-mocks", daemon=True
+        self._child = Child(
+            _esp_main, config, name="esp8266-mocks", what="the cars' ESP8266 process"
         )
-        self._process.start()
-        child.close()
-        reply = self._conn.recv() if self._conn.poll(START_TIMEOUT_S) else ("error", "no answer")
-        if reply[0] != "ready":
-            self._process.join(timeout=5)
-            raise OSError(f"the cars' ESP8266 process: {reply[1]}")
-        self.addresses: dict[int, tuple[str, int]] = reply[1]
+        self._conn = self._child.conn
+        self.addresses: dict[int, tuple[str, int]] = self._child.ready
         self._lock = asyncio.Lock()
 
     async def ask(self, kind: str, car: int | None = None, value: Any = None) -> Any:
@@ -86,17 +78,7 @@ class EspProcess:
     def stop(self) -> dict[str, Any]:
         """Power the ESP8266s off (each says LEAVE and stops its motors); their final counters
         by car id and the process's scheduler (empty if it had already gone)."""
-        final: dict[str, Any] = {}
-        try:
-            self._conn.send(("stop", None, None))
-            if self._conn.poll(ANSWER_TIMEOUT_S):
-                final = self._conn.recv()[1]
-        except (OSError, EOFError):
-            pass
-        self._process.join(timeout=5)
-        if self._process.is_alive():
-            self._process.terminate()
-        return final
+        return self._child.stop(("stop", None, None)) or {}
 
 
 def _esp_main(conn: Connection, config: dict[str, Any]) -> None:

@@ -31,7 +31,6 @@ import contextlib
 import itertools
 import json
 import math
-import multiprocessing
 import os
 import signal
 import sys
@@ -58,6 +57,7 @@ from udan.firmware_mock.fleet import load_fleet
 from udan.firmware_mock.motor import Pose, Trajectory, wrap
 from udan.firmware_mock.udp import MotorEnd, car_counters
 from udan.fleetfile import FleetFileError
+from udan.hil.children import Child
 from udan.hil.esp import EspProcess
 from udan.hil.motion import (
     LEVELS,
@@ -432,17 +432,8 @@ class CameraProcess:
     """
 
     def __init__(self, world: HilWorld, config: dict[str, Any]) -> None:
-        context = multiprocessing.get_context("spawn")
-        self._conn, child = context.Pipe()
-        self._process = context.Process(
-            target=_camera_main, args=(child, config), name="virtual-camera", daemon=True
-        )
-        self._process.start()
-        child.close()
-        reply = self._conn.recv() if self._conn.poll(60) else ("error", "camera did not start")
-        if reply[0] != "ready":
-            self._process.join(timeout=5)
-            raise OSError(f"virtual camera: {reply[1]}")
+        self._child = Child(_camera_main, config, name="virtual-camera", what="virtual camera")
+        self._conn = self._child.conn
         world.listener = self._send_scene
         self._send_scene(world.scene())
 
@@ -459,17 +450,7 @@ class CameraProcess:
 
     def stop(self) -> dict[str, Any]:
         """Stop rendering, remove the shared memory; the camera's counters."""
-        summary: dict[str, Any] = {}
-        try:
-            self._conn.send(("stop", None))
-            if self._conn.poll(10):
-                summary = self._conn.recv()[1]
-        except (OSError, EOFError):
-            pass
-        self._process.join(timeout=5)
-        if self._process.is_alive():
-            self._process.terminate()
-        return summary
+        return self._child.stop(("stop", None)) or {}
 
 
 def _camera_main(conn: Connection, config: dict[str, Any]) -> None:
