@@ -55,22 +55,26 @@ class EspProcess:
         self._conn = self._child.conn
         self.addresses: dict[int, tuple[str, int]] = self._child.ready
         self._lock = asyncio.Lock()
+        self._asked = 0
 
     async def ask(self, kind: str, car: int | None = None, value: Any = None) -> Any:
-        """One request to the ESP8266s, answered in order; ``ValueError`` with their refusal."""
-        loop = asyncio.get_running_loop()
+        """One request to the ESP8266s; ``ValueError`` with their refusal, or if they do not
+        answer (an answer that comes after its time is dropped when the next one is read)."""
         async with self._lock:
-            self._conn.send((kind, car, value))
-            readable: asyncio.Future[None] = loop.create_future()
+            self._asked += 1
             fd = self._conn.fileno()
-            loop.add_reader(fd, lambda: readable.done() or readable.set_result(None))
             try:
-                await asyncio.wait_for(readable, ANSWER_TIMEOUT_S)
+                self._conn.send((self._asked, kind, car, value))
+                async with asyncio.timeout(ANSWER_TIMEOUT_S):
+                    while True:
+                        await _readable(fd)
+                        number, status, answer = self._conn.recv()
+                        if number == self._asked:
+                            break
             except TimeoutError:
                 raise ValueError(f"the cars' ESP8266 process did not answer {kind!r}") from None
-            finally:
-                loop.remove_reader(fd)
-            status, answer = self._conn.recv()
+            except (EOFError, OSError):
+                raise ValueError("the cars' ESP8266 process has ended") from None
         if status != "ok":
             raise ValueError(answer)
         return answer
@@ -78,7 +82,18 @@ class EspProcess:
     def stop(self) -> dict[str, Any]:
         """Power the ESP8266s off (each says LEAVE and stops its motors); their final counters
         by car id and the process's scheduler (empty if it had already gone)."""
-        return self._child.stop(("stop", None, None)) or {}
+        return self._child.stop((0, "stop", None, None)) or {}
+
+
+async def _readable(fd: int) -> None:
+    """Until ``fd`` has something to read."""
+    loop = asyncio.get_running_loop()
+    ready: asyncio.Future[None] = loop.create_future()
+    loop.add_reader(fd, lambda: ready.done() or ready.set_result(None))
+    try:
+        await ready
+    finally:
+        loop.remove_reader(fd)
 
 
 def _esp_main(conn: Connection, config: dict[str, Any]) -> None:
@@ -131,17 +146,17 @@ async def _serve(conn: Connection, config: dict[str, Any]) -> None:
 
     def readable() -> None:
         try:
-            kind, car_id, value = conn.recv()
+            number, kind, car_id, value = conn.recv()
         except (EOFError, OSError):  # the world is gone: power off
-            kind, car_id, value = "stop", None, None
+            number, kind, car_id, value = 0, "stop", None, None
         if kind == "stop":
             stopped.set()
             loop.remove_reader(conn.fileno())
             return
         try:
-            reply = ("ok", answer(kind, car_id, value))
+            reply = (number, "ok", answer(kind, car_id, value))
         except (ValueError, KeyError) as err:
-            reply = ("error", str(err))
+            reply = (number, "error", str(err))
         conn.send(reply)
 
     loop.add_reader(conn.fileno(), readable)

@@ -252,10 +252,12 @@ def _schedule(tid: int) -> tuple[int, int]:
     return policy, os.sched_getparam(tid).sched_priority
 
 
-def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
+@pytest.mark.parametrize("killed", ["world", "radios"])
+def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path, killed: str) -> None:
     """The HIL world runs the cars' ESP8266 mocks in a child process (their sockets are its);
-    a fault reaches both halves of a car or neither; a killed world takes that process along.
-    With ``--realtime`` the radios run SCHED_RR as the world does, and the camera below them."""
+    a fault reaches both halves of a car or neither; a killed world takes that process along,
+    and a world whose radios were killed says so and still stops cleanly. With ``--realtime``
+    the radios run SCHED_RR as the world does, and the camera below them."""
     edge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     edge.bind(("127.0.0.1", 0))
     camera = f"udan-test-{time.monotonic_ns()}"
@@ -295,6 +297,15 @@ def test_the_worlds_car_radios_are_a_process_of_their_own(fleet: Path) -> None:
         counters = _ask(control, {"op": "counters"})["cars"]["1"]
         assert counters["executed"] == 0 and counters["serial_bad_frames"] == 0
         assert "link_in" in counters
+        if killed == "radios":
+            os.kill(radios, signal.SIGKILL)
+            gone = _ask(control, {"op": "cars"})
+            assert not gone["ok"] and "ended" in gone["error"], gone
+            assert _ask(control, {"op": "state"})["ok"]
+            world.terminate()
+            assert world.wait(10) == 0
+            assert json.loads(world.stdout.readline())["cars"]["1"]["executed"] == 0
+            return
         world.kill()
         world.wait(5)
         deadline = time.monotonic() + 10
