@@ -21,7 +21,15 @@ from test_train import TINY, one_line_exit_2, quiet, run_cli
 
 from udan.budget import planned_counts
 from udan.checkpoint import load_checkpoint, load_model
-from udan.cluster import PROBE_SECONDS, ScaleError, check_address, import_ray, ray_session
+from udan.cluster import (
+    CLIENT_INIT_TRIES,
+    PROBE_SECONDS,
+    ScaleError,
+    _join,
+    check_address,
+    import_ray,
+    ray_session,
+)
 from udan.distributed import POOLS, LocalPool, Rollout, RolloutWorker, WorkerLost
 from udan.evaluate import CheckpointPolicy, evaluate
 from udan.train import EpisodeReplay, TrainConfig, build, train
@@ -225,6 +233,39 @@ def test_an_unreachable_address_is_one_line_within_10_s_start_up_included(tmp_pa
             assert time.monotonic() - started - start_up < 8, (address, start_up)
             one_line_exit_2(proc, fragment)
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+class _FlakyClientRay:
+    """Ray as a client sees it when the server's process for the client fails to start
+    ``failures`` times, then starts."""
+
+    def __init__(self, failures: int) -> None:
+        self.failures = failures
+        self.inits = 0
+
+    def init(self, **_: object) -> None:
+        self.inits += 1
+        if self.inits <= self.failures:
+            raise ConnectionAbortedError(
+                "Initialization failure from server:\nTraceback (most recent call last):\n"
+                '  File "proxier.py", line 768\nRuntimeError: Starting Ray client server failed.'
+            )
+
+
+def test_a_client_server_that_fails_to_start_our_process_is_tried_once_more():
+    """Ray's client server starts a process per client and now and then fails to: one more try;
+    a second failure is one line with the server's own last line."""
+    once = _FlakyClientRay(failures=1)
+    _join(once, "ray://127.0.0.1:10001")
+    assert once.inits == 2
+    twice = _FlakyClientRay(failures=2)
+    with pytest.raises(ScaleError) as refused:
+        _join(twice, "ray://127.0.0.1:10001")
+    assert twice.inits == CLIENT_INIT_TRIES == 2
+    assert str(refused.value) == (
+        "--address ray://127.0.0.1:10001: Initialization failure from server: "
+        "RuntimeError: Starting Ray client server failed."
+    )
 
 
 def test_an_address_that_does_not_answer_is_given_up_within_its_deadline():

@@ -26,6 +26,7 @@ class ScaleError(ValueError):
     """A cluster that cannot be reached or used: the CLIs say so in one line, exit code 2."""
 
 
+log = logging.getLogger(__name__)
 #: An ``--address`` where nothing answers, or nothing that speaks gRPC, is reported within
 #: this many seconds of trying: with the command's start-up (2 s, more on a loaded machine),
 #: within 10 s. A cluster's GCS or client server answers a probe in milliseconds.
@@ -33,6 +34,10 @@ PROBE_SECONDS = 4.0
 #: Joining what answers there may take longer (a Ray client server starts a process for each
 #: client): it is given up after this many seconds.
 JOIN_SECONDS = 60.0
+#: Ray's client server starts a process per client; now and then (seen on a loaded 2-core
+#: machine: that process dead within half a second of its start) it fails to, and the client
+#: is refused with "Initialization failure from server". One more try is a new process.
+CLIENT_INIT_TRIES = 2
 #: Ray's smallest object store; ours is the command's need, at least this.
 MIN_OBJECT_STORE = 80 * 1024**2
 #: Ray's settings unless the environment says otherwise, read when Ray is imported: no usage
@@ -148,11 +153,18 @@ def _join(ray, address: str) -> None:
     outcome: dict[str, BaseException | None] = {}
 
     def connect() -> None:
-        try:
-            ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
-            outcome["error"] = None
-        except Exception as err:  # handed to the caller's thread below
-            outcome["error"] = err
+        for attempt in range(1, CLIENT_INIT_TRIES + 1):
+            try:
+                ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
+                outcome["error"] = None
+                return
+            except ConnectionAbortedError as err:  # ray://: the server's process for us failed
+                outcome["error"] = err
+                if attempt < CLIENT_INIT_TRIES:
+                    log.warning("--address %s: %s; trying again", address, _said(err))
+            except Exception as err:  # handed to the caller's thread below
+                outcome["error"] = err
+                return
 
     notice = _SilenceThreadNotice()
     logging.getLogger("ray._private.worker").addFilter(notice)
@@ -167,8 +179,17 @@ def _join(ray, address: str) -> None:
             f"--address {address}: no answer from a Ray cluster within {JOIN_SECONDS:.0f} s"
         )
     if outcome["error"] is not None:
-        first = str(outcome["error"]).strip().splitlines()[0][:160]
-        raise ScaleError(f"--address {address}: {first}")
+        raise ScaleError(f"--address {address}: {_said(outcome['error'])}")
+
+
+def _said(err: BaseException) -> str:
+    """An error in one line: its first, and when that only announces what follows (Ray's
+    client passes on the server's whole traceback), the last too."""
+    lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    said = lines[0] if len(lines) == 1 or not lines[0].endswith(":") else f"{lines[0]} {lines[-1]}"
+    return said[:200]
 
 
 @contextmanager
