@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -363,16 +364,24 @@ def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
     cfg = TrainConfig(steps=2400, out=str(tmp_path / "w"), checkpoint_every=1200, workers=2, **TINY)
     killed = []
 
-    def kill_a_worker_once_both_have_played(*args, **kwargs):
-        if not killed and args and "w0 " in args[0] and "w1 " in args[0]:
-            workers = ray_workers(os.getpid())
-            assert len(workers) == 2, workers
+    def kill_a_worker_in_the_first_half(*args, **kwargs):
+        """Both workers up, half the run still to play: one is killed, and the learner (whose
+        thread this is) waits until the process is gone, so the loss is there to be seen at its
+        next wait however slowly a loaded machine lets Ray notice (a kill near the run's end,
+        seen once in CI, was never noticed: the other worker finished the run first)."""
+        played = re.search(r"steps ([\d,]+)", args[0]) if args else None
+        half_left = played is not None and int(played[1].replace(",", "")) <= cfg.steps // 2
+        if not killed and half_left and len(workers := ray_workers(os.getpid())) == 2:
             os.kill(workers[0], signal.SIGKILL)
             killed.append(workers[0])
+            deadline = time.monotonic() + 10
+            while workers[0] in ray_workers(os.getpid()) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(1.0)
         if args and "lost" in args[0]:
             killed.append(args[0])
 
-    ckpt = load_checkpoint(train(cfg, log=kill_a_worker_once_both_have_played))
+    ckpt = load_checkpoint(train(cfg, log=kill_a_worker_in_the_first_half))
     assert ckpt["progress"]["steps"] == 2400
     assert ckpt["workers"]["lost"] == 1 and ckpt["workers"]["started"] == 3
     assert "takes over" in killed[1]
