@@ -770,7 +770,8 @@ class _Server:
                 continue
             remembered = self.ring is not None and self.ring.remember(frame)
             self.send_scene(scene)
-            self.vision.survey()  # nothing left if it ran before
+            if survey_after:
+                self.vision.survey()
             if self.annotator is not None:
                 self._annotate(frame, scene)
             if remembered:

@@ -198,9 +198,17 @@ class MockCar:
         except (OSError, OverflowError):
             self.motor.close()
             raise
-        self.firmware = self.esp.firmware
-        self.controller = self.motor.controller
         return self.address
+
+    @property
+    def firmware(self) -> CarFirmware:
+        """The ESP8266's firmware (after ``start``)."""
+        return self.esp.firmware
+
+    @property
+    def controller(self) -> MotorController:
+        """The motor controller (after ``start``)."""
+        return self.motor.controller
 
     def close(self) -> None:
         """LEAVE, stop the motors, close socket and serial line."""
