@@ -16,10 +16,10 @@ from test_train import one_line_exit_2, quiet, run_cli
 
 from udan.budget import calibrate, planned_counts
 from udan.checkpoint import CheckpointError, load_checkpoint
-from udan.envs import make_vec
+from udan.envs import EnvConfigError, make_vec
 from udan.envs.magent import make
 from udan.learner import Actor, ModelSpec, MultiAgentQ
-from udan.train import TrainConfig, rollout, train, unroll, update
+from udan.train import TrainConfig, rollout, train, training_batch, unroll, update
 
 pytestmark = pytest.mark.magent
 #: queue on an 8x8 map, 1-3 agents: a lone agent is a line at once, so episodes end early.
@@ -268,10 +268,58 @@ def test_calibrate_prints_json_and_one_line_and_writes_no_run(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
+def test_potential_is_nearness_to_the_closest_opponent_in_view():
+    env = make("magent/pursuit", agents=3, map_size=20, seed=0)
+    layout = {"agents": [(5, 5), (15, 15), (9, 9)], "opponents": [(5, 8), (12, 12)], "walls": []}
+    env.reset(options={"layout": layout})
+    # wolf view 5: 3 cells away -> -0.6; then 18**0.5 and 17**0.5 (the nearer of two sheep)
+    got = env.potential()
+    assert got["agent_0"] == pytest.approx(-0.6)
+    assert got["agent_1"] == pytest.approx(-(18**0.5) / 5)
+    assert got["agent_2"] == pytest.approx(-(17**0.5) / 5)
+    env.reset(options={"layout": {**layout, "opponents": [(1, 1)]}})
+    assert set(env.potential().values()) == {-1.0}  # nothing in view
+    with pytest.raises(EnvConfigError, match="no opponents"):
+        make("magent/queue", **SHORT_QUEUE).potential()
+
+
+def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_return():
+    """Same seed and actions, with and without shaping: the rewards differ by c(γΦ' − Φ) for
+    the agents that acted, the logged return does not differ, and per episode the shaping
+    telescopes to c(γ^T Φ_T − Φ_0) discounted."""
+    c, gamma, steps = 0.5, 0.9, 20
+    cfg = TrainConfig(env="magent/pursuit", agents="2-4", map_size=12, max_steps=steps,
+                      shaping=c, gamma=gamma, obstacles="0")  # fmt: skip
+    shaped = training_batch(cfg, 3, 7)
+    plain = training_batch(dataclasses.replace(cfg, shaping=0.0), 3, 7)
+    shaped.reset(), plain.reset()
+    phi0 = shaped.env.potential()
+    assert (phi0 == plain.potential()).all() and (phi0[~shaped.present] == 0).all()
+    rng = np.random.default_rng(0)
+    discounted, phi = np.zeros(phi0.shape), phi0
+    for t in range(steps):
+        actions = rng.integers(0, shaped.n_actions, (shaped.batch, shaped.slots))
+        acting = shaped.present.copy()
+        _, r1, _ = shaped.step(actions)
+        _, r0, _ = plain.step(actions)
+        after = shaped.env.potential()
+        np.testing.assert_allclose(
+            r1 - r0, np.where(acting, c * (gamma * after - phi), 0), atol=1e-6
+        )
+        discounted += gamma**t * (r1 - r0)
+        phi = after
+    np.testing.assert_allclose(discounted, c * (gamma**steps * phi - phi0), atol=1e-5)
+    assert (shaped.episode_return == plain.episode_return).all()
+    assert discounted.any()
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
         (["--env", "magent/chess"], "unknown env"),
+        (["--env", "magent/queue", "--shaping", "1"], "--shaping needs a task with opponents"),
+        (["--env", "arena/find_water", "--shaping", "1"], "--shaping needs a task with opponents"),
+        (["--env", "magent/pursuit", "--shaping", "-1"], "--shaping must be >= 0"),
         (["--env", "magent/queue", "--agents", "8-40"], "cannot line up"),
         (["--env", "magent/pursuit", "--agents", "0-3"], "at least 1"),
         (["--env", "magent/tiger", "--agents", "20", "--map-size", "10"], "do not fit"),
@@ -289,7 +337,7 @@ def test_magent_end_to_end_through_the_clis(tmp_path):
     udan-eval's refusals, on magent/pursuit at tiny sizes."""
     small = ["--env", "magent/pursuit", "--map-size", 16, "--max-steps", 20, "--steps", 480,
              "--n-envs", 4, "--batch-episodes", 4, "--updates-per-rollout", 2, "--hidden", 16,
-             "--leader-explore", 0.3]  # fmt: skip
+             "--leader-explore", 0.3, "--shaping", 0.5]  # fmt: skip
     for algo, agents in (("udan", "2-4"), ("qmix", "3")):
         out = run_cli(*small, "--algo", algo, "--agents", agents, "--out", tmp_path / algo,
                       timeout=600)  # fmt: skip
@@ -298,6 +346,7 @@ def test_magent_end_to_end_through_the_clis(tmp_path):
     ckpt = load_checkpoint(udan)
     assert ckpt["obs_spec"]["scenario"] == "magent/pursuit" and ckpt["config"]["agents"] == "2-4"
     assert ckpt["model_spec"]["obs_dim"] == 635 and ckpt["model_spec"]["n_actions"] == 17
+    assert ckpt["config"]["shaping"] == 0.5
     out = run_cli(udan, "--episodes", 6, "--ablate", "messages=shuffle,leaders=random",
                   "--out", tmp_path / "eval", tool="udan-eval", timeout=600)  # fmt: skip
     assert out.returncode == 0, out.stderr

@@ -7,7 +7,7 @@ import pytest
 
 from udan.envs import make_vec
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT, WATER
-from udan.policies import OraclePolicy, RandomPolicy, assign, distance_field
+from udan.policies import ChaserPolicy, OraclePolicy, RandomPolicy, assign, distance_field
 
 
 def play(env, policy):
@@ -79,3 +79,32 @@ def test_distance_field_goes_around_walls():
     assert (
         field[2, 0] == 6 and np.isinf(distance_field(passable[:1, :1] & False, (0, 0))).sum() == 0
     )
+
+
+@pytest.mark.magent
+def test_the_chaser_attacks_in_range_closes_in_on_what_it_sees_and_walks_on_otherwise():
+    from udan.envs.magent import make, move_offsets
+
+    env = make("magent/pursuit", agents=3, map_size=30, seed=0)
+    layout = {"agents": [(5, 5), (20, 20), (10, 25)], "opponents": [(6, 6), (20, 24)], "walls": []}
+    env.reset(options={"layout": layout})
+    heading = np.array([0, 0, 3])
+    got = ChaserPolicy(seed=1).act_in(env, heading)
+    moves = move_offsets(env.agent_attrs["speed"]).tolist()
+    assert got["agent_0"] == env.attack_action(1, 1)  # 1.4 cells: in range 2
+    assert moves[got["agent_1"]] == [0, 1]  # 4 cells down: in view 5, out of range
+    assert moves[got["agent_2"]] in ([0, 1], [0, -1], [-1, 0], [1, 0])  # sees none: walks
+    assert heading[:2].tolist() == [0, 0]  # the two that saw a sheep kept their heading
+
+
+@pytest.mark.magent
+def test_the_chaser_scores_where_random_wolves_only_pay_for_attacks():
+    from udan.evaluate import evaluate
+
+    def score(policy):
+        options = {"map_size": 20, "max_steps": 60}
+        return evaluate("magent/pursuit", policy, (6, 6), (0, 0), 2, 3, options)[0].scores.mean()
+
+    assert score(ChaserPolicy()) > 5 > 0 > score(RandomPolicy())
+    with pytest.raises(ValueError, match="pursuit, tiger"):
+        evaluate("magent/queue", ChaserPolicy(), (3, 3), (0, 0), 1, 0, {"map_size": 10})

@@ -27,7 +27,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,17 +35,17 @@ import numpy as np
 import torch
 
 from udan.cluster import ScaleError, import_ray, ray_session
-from udan.envs import EnvConfigError, make_vec
+from udan.envs import EnvConfigError
 from udan.learner import Actor, ModelSpec, MultiAgentQ
 from udan.train import (
     EpisodeReplay,
     Run,
     TrainConfig,
     build,
-    env_options,
     env_steps,
     episode_returns,
     rollout,
+    training_batch,
     update_round,
 )
 
@@ -82,14 +82,7 @@ class RolloutWorker:
     def __init__(self, cfg: TrainConfig, spec: ModelSpec, serial: int) -> None:
         torch.set_num_threads(cfg.torch_threads)
         env_seed, act_seed = np.random.SeedSequence(cfg.seed, spawn_key=(serial,)).spawn(2)
-        self.env = make_vec(
-            cfg.env,
-            batch=cfg.n_envs,
-            seed=env_seed,
-            agents=cfg.agents,
-            obstacles=cfg.obstacles,
-            **env_options(asdict(cfg)),
-        )
+        self.env = training_batch(cfg, cfg.n_envs, env_seed)
         self.model = MultiAgentQ(spec)
         self.actor = Actor(self.model, self.env.batch, self.env.slots)
         self.actor.leader_explore = cfg.leader_explore

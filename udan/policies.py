@@ -1,4 +1,5 @@
-"""Reference policies for the arena tasks: the floor (``random``) and the ceiling (``oracle``).
+"""Reference policies: the floor (``random``, every task), the arena's ceiling (``oracle``) and
+MAgent pursuit's scripted reference (``chaser``, below).
 
 The oracle is a centralised planner with the whole map, obeying the same world rules:
 
@@ -45,7 +46,8 @@ class RandomPolicy:
         """Nothing to plan."""
 
     def act(self, env: ArenaBatch) -> np.ndarray:
-        return self.rng.integers(0, N_ACTIONS, size=(env.batch, env.slots))
+        n_actions = getattr(env, "n_actions", N_ACTIONS)  # a MAgent batch has its own count
+        return self.rng.integers(0, n_actions, size=(env.batch, env.slots))
 
 
 def walk_to_zone(pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -296,4 +298,71 @@ class OraclePolicy:
         return actions
 
 
-POLICIES = {"random": RandomPolicy, "oracle": OraclePolicy}
+class ChaserPolicy:
+    """MAgent pursuit and tiger, scripted and decentralised: each agent sees what its view shows
+    and nothing else, and no messages pass.
+
+    An agent attacks the nearest opponent it sees when that one is in attack range; otherwise it
+    steps toward it along the longer axis of the gap (the other axis when that cell is taken, a
+    random one on a tie); seeing none, it walks a straight line in a heading it keeps until it is
+    blocked or, with probability 1/20 a step, draws anew. A reference for what the task gives
+    without learning or communication, not an optimum.
+    """
+
+    turn = 0.05
+
+    def __init__(self, seed: int | None = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+        self._heading: np.ndarray | None = None
+
+    def reset(self, env) -> None:
+        self._heading = self.rng.integers(0, 4, size=(env.batch, env.slots))
+
+    def act(self, env) -> np.ndarray:
+        if not getattr(env, "has_opponents", False):
+            raise ValueError("the chaser plays MAgent tasks with opponents (pursuit, tiger)")
+        assert self._heading is not None, "reset first"
+        actions = np.full((env.batch, env.slots), env.envs[0].stay_action, dtype=np.int64)
+        for b, world in enumerate(env.envs):
+            if not env.over[b]:
+                for name, action in self.act_in(world, self._heading[b]).items():
+                    actions[b, env._names.index(name)] = action
+        return actions
+
+    def act_in(self, world, heading: np.ndarray) -> dict[str, int]:
+        """Actions of one MAgent env's agents by name; ``heading`` (by slot) is kept in place."""
+        from udan.envs.magent import move_offsets  # MAgent2 is the [train] extra's
+
+        view, reach = float(world.agent_attrs["view"]), float(world.agent_attrs["attack"])
+        moves = move_offsets(world.agent_attrs["speed"])
+        steps = [int(np.flatnonzero((moves == d).all(1))[0]) for d in _STEPS]
+        agents, opponents = world.positions()
+        taken = {tuple(c) for c in agents.tolist()} | {tuple(c) for c in opponents.tolist()}
+        out = {}
+        for name, cell in world.agent_cells().items():
+            gap = opponents - cell
+            dist = np.hypot(gap[:, 0], gap[:, 1])
+            if len(dist) and dist.min() <= view:
+                dx, dy = (int(v) for v in gap[int(dist.argmin())])
+                if dist.min() <= reach:
+                    out[name] = world.attack_action(dx, dy)
+                    continue
+                along_x = abs(dx) > abs(dy) or (abs(dx) == abs(dy) and self.rng.random() < 0.5)
+                order = [(int(np.sign(dx)), 0), (0, int(np.sign(dy)))]
+                options = [d for d in (order if along_x else order[::-1]) if d != (0, 0)]
+                free = [d for d in options if (cell[0] + d[0], cell[1] + d[1]) not in taken]
+                out[name] = steps[_STEPS.index((free or options)[0])]
+                continue
+            slot = world.possible_agents.index(name)
+            dx, dy = _STEPS[heading[slot]]
+            ahead = (cell[0] + dx, cell[1] + dy)
+            if self.rng.random() < self.turn or ahead in taken or world.walls[ahead]:
+                heading[slot] = self.rng.integers(0, 4)
+            out[name] = steps[heading[slot]]
+        return out
+
+
+#: The four unit moves of a speed-1 MAgent agent, as ``(dx, dy)``.
+_STEPS = [(0, -1), (-1, 0), (1, 0), (0, 1)]
+
+POLICIES = {"random": RandomPolicy, "oracle": OraclePolicy, "chaser": ChaserPolicy}

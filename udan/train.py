@@ -115,6 +115,10 @@ class TrainConfig:
     rollout, so groups, and gradients through the messages, exist before the scorer picks any."""
     messages: str = "on"
     """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
+    shaping: float = 0.0
+    """MAgent tasks with opponents: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s))
+    added to each agent's training reward, Φ its nearness to the closest opponent in view
+    (policy-invariant; scores and the logged return are the task's own; 0: none)."""
     leader_target: str = "signed"
     """UDAN: the leader classifier's target from ΔQ: signed (lead when messages raise the
     group's values) or minmax (the paper's eq. 9; runs older than this field used it)."""
@@ -276,6 +280,56 @@ def episode_returns(env: ArenaBatch, episodes: dict[str, np.ndarray]) -> np.ndar
 def env_steps(env: ArenaBatch) -> int:
     """Environment steps of one rollout of ``env`` (every episode runs to the time limit)."""
     return env.batch * env.config.max_steps
+
+
+class ShapedRewards:
+    """A training batch whose rewards carry potential-based shaping (Ng, Harada & Russell,
+    ICML 1999): ``r + c·(γ·Φ(s') − Φ(s))`` per agent, Φ the batch's ``potential()``.
+
+    Summed over an episode the shaping telescopes to ``c·(γ^T Φ(s_T) − Φ(s_0))``, so it changes
+    no policy's ranking, only how soon a learner meets the reward: on pursuit a uniformly random
+    wolf scores no tag in a 300-step episode while its attacks cost −42 (docs/algorithm.md).
+    Everything else, ``episode_return`` (what is logged) included, is the inner batch's.
+    """
+
+    def __init__(self, env: ArenaBatch, weight: float, gamma: float) -> None:
+        self.env, self.weight, self.gamma = env, weight, gamma
+        self._phi = np.zeros((env.batch, env.slots), dtype=np.float32)
+
+    def __getattr__(self, name: str):
+        return getattr(self.env, name)
+
+    def reset(self, where: np.ndarray | None = None) -> np.ndarray:
+        obs = self.env.reset(where)
+        self._phi = self.env.potential()
+        return obs
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        acting = self.env.present.copy()
+        obs, reward, done = self.env.step(actions)
+        phi = self.env.potential()
+        shaped = reward + self.weight * np.where(acting, self.gamma * phi - self._phi, 0.0)
+        self._phi = phi
+        return obs, shaped.astype(np.float32), done
+
+
+def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
+    """The batch of ``cfg``'s task that rollouts play (shaped when ``cfg.shaping``)."""
+    env = make_vec(
+        cfg.env,
+        batch=batch,
+        seed=seed,
+        agents=cfg.agents,
+        obstacles=cfg.obstacles,
+        **env_options(asdict(cfg)),
+    )
+    if cfg.shaping < 0:
+        raise EnvConfigError(f"--shaping must be >= 0, got {cfg.shaping}")
+    if cfg.shaping and not getattr(env, "has_opponents", False):
+        raise EnvConfigError(
+            f"--shaping needs a task with opponents (magent/pursuit, magent/tiger), not {cfg.env}"
+        )
+    return ShapedRewards(env, cfg.shaping, cfg.gamma) if cfg.shaping else env
 
 
 # ---------------------------------------------------------------------------------- update
@@ -441,14 +495,7 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         raise EnvConfigError("--update-every must be >= 1 and --bptt-steps >= 0")
     if cfg.map_size and not cfg.env.startswith("magent/"):
         raise EnvConfigError(f"--map-size is for MAgent tasks, not {cfg.env}")
-    env = make_vec(
-        cfg.env,
-        batch=cfg.n_envs,
-        seed=cfg.seed,
-        agents=cfg.agents,
-        obstacles=cfg.obstacles,
-        **env_options(asdict(cfg)),
-    )
+    env = training_batch(cfg, cfg.n_envs, cfg.seed)
     if cfg.messages not in ("on", "off"):
         raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
     if not 0.0 <= cfg.leader_explore <= 1.0:

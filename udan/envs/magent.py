@@ -233,6 +233,27 @@ class MagentEnv(ParallelEnv):
             self._engine.get_pos(opp) if opp is not None and self._engine.get_num(opp) else none,
         )
 
+    @property
+    def walls(self) -> np.ndarray:
+        """``walls[x, y]``: the cell is a wall (the border included) in this episode."""
+        return self._walls
+
+    def potential(self) -> dict[str, float]:
+        """Each engine-held learning agent's nearness to the closest opponent, as far as it sees:
+        ``-min(d, view) / view`` with ``d`` the Euclidean distance in cells, so -1 with no
+        opponent in view (or none left) and 0 on top of one. Training's reward shaping
+        (``udan-train --shaping``) reads it; the task's own rewards never do."""
+        if self._opp_handle is None:
+            raise EnvConfigError(f"{self.metadata['name']}: has no opponents to be near")
+        cells, opponents = self.agent_cells(), self.positions()[1]
+        view = float(self.agent_attrs["view"])
+        near = np.full(len(cells), view)
+        if len(cells) and len(opponents):
+            own = np.array(list(cells.values()), dtype=np.float64)
+            gaps = own[:, None, :] - opponents[None, :, :]
+            near = np.minimum(np.hypot(gaps[..., 0], gaps[..., 1]).min(axis=1), view)
+        return dict(zip(cells, (-near / view).tolist(), strict=True))
+
     def agent_cells(self) -> dict[str, np.ndarray]:
         """``(x, y)`` cell of every learning agent the engine still holds, by agent name."""
         ids = self._engine.get_agent_id(self._handle)
@@ -590,6 +611,7 @@ class MagentBatch:
             name, first.agent_range, first.obstacle_range, first.max_steps, first.map_size
         )
         self.batch, self.slots = batch, first.agent_range[1]
+        self.has_opponents = first.opponent_attrs is not None
         self.rng = np.random.default_rng(seed)
         b, n = batch, self.slots
         self.pos = np.zeros((b, n, 2), dtype=np.int64)
@@ -653,6 +675,15 @@ class MagentBatch:
     def _read_cells(self, b: int) -> None:
         for name, cell in self.envs[b].agent_cells().items():
             self.pos[b, self._names.index(name)] = cell
+
+    def potential(self) -> np.ndarray:
+        """Every slot's :meth:`MagentEnv.potential` (B, N); absent slots and episodes that are
+        over are 0 (a terminal state's potential, so shaping stays policy-invariant)."""
+        out = np.zeros((self.batch, self.slots), dtype=np.float32)
+        for b in np.flatnonzero(~self.over):
+            for name, value in self.envs[b].potential().items():
+                out[b, self._names.index(name)] = value
+        return np.where(self.present, out, 0.0).astype(np.float32)
 
     def observe(self) -> np.ndarray:
         """Every slot's observation (B, N, spec.size); absent slots are zero."""
