@@ -109,6 +109,13 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
         ),
         log=quiet,
     )
+    pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
+    train(
+        TrainConfig(
+            env="magent/pursuit", steps=288, out=str(models / "magent_pursuit"), **pursuit, **tiny
+        ),
+        log=quiet,
+    )
     out = tmp_path / "results.md"
     assert main(["--models", str(models), "--out", str(out), "--episodes", "2"]) == 0
     text = out.read_text()
@@ -116,6 +123,9 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     assert "| 1-3 | 1-3 |" in row and NOT_TRAINED not in row
     assert "curves only (Fig. 5)" in row
     assert "| magent_queue |" in text and (tmp_path / "results" / "fig5_curves.png").is_file()
+    chaser = next(line for line in text.splitlines() if line.startswith("| pursuit | scripted"))
+    assert re.search(r"\| 2-3 \| -?\d+\.\d\d \[", chaser), chaser
+    assert not any(line.startswith("| queue | scripted") for line in text.splitlines())
 
 
 @pytest.mark.parametrize(

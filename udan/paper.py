@@ -38,6 +38,7 @@ from udan.evaluate import (
     pooled_scores,
 )
 from udan.paths import FolderError, ensure_folder
+from udan.policies import ChaserPolicy
 
 # ------------------------------------------------------------------ the paper's numbers
 #: Table V, upper half: average agent score, rows obstacles ("Wall nums") 0-9, columns N = 1-4.
@@ -137,6 +138,9 @@ MAGENT = {
     )
     for scenario in ("pursuit", "tiger", "queue")
 }
+#: Scenarios with a scripted reference row (``udan-eval --policy chaser``) beside their UDAN.
+CHASED = ("pursuit", "tiger")
+CHASER = "scripted chaser (no learning, no messages)"
 #: Every folder udan-paper reads a model from.
 FOLDERS = tuple(
     entry[1] for entries in (FIG7, FIG8, CONTROL, *MAGENT.values()) for entry in entries
@@ -553,6 +557,21 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             out.append(
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
                 f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}] | {theirs} |"
+            )
+        if udan is not None and scenario in CHASED:
+            results = evaluate(
+                f"magent/{scenario}",
+                ChaserPolicy(settings.seed),
+                parse_range(udan.trained_agents, "agents"),
+                (0, 0),
+                settings.magent_episodes,
+                settings.seed,
+                udan.options(),
+            )
+            mean, half = mean_ci(np.concatenate([r.scores for r in results]))
+            out.append(
+                f"| {scenario} | {CHASER} | — | {udan.trained_agents} | "
+                f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}] | — |"
             )
         curves += [e for e in entries if loaded[e[0]] is not None]
     table = _curves(settings.models, curves, settings.figures / "fig5_curves.png")
