@@ -2,7 +2,8 @@
 training was added: the digests below were made with that code (commit 92dec93). A model
 retrained since has the digests of the code it was committed with (``hidden_goal``: 88b82d8;
 ``find_water``: trained at 2ee4a88, its earlier model kept in ``find_water/minmax``; on the small
-evaluation here the two play the same episodes to the same scores, their exports differ).
+evaluation here the two play the same episodes to the same scores, their exports differ;
+``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -67,8 +68,28 @@ BEFORE = {
         "30bb0ccb9d6944f25b25e4b7e01940f1190e76a906fe9795c353435581865a9b",
     ),
     "surround": (
-        "3b47812c6a3f27a1ce6e8154d8401c1607a1916f994fdddaef78d6afe9981577",
-        "0d933d7e017b2031a93a1e4d5b103faad2f7a9d028119254642c302cf22f7378",
+        "c2715a2d4fc42743dd76225ff94d450c032d4e2011e2f41c9f4fa378a85de46f",
+        "23ea9ddb85184b541a88c560b1bcc40874f87bc186179b3a3aecb63a08d86a73",
+    ),
+    "baselines/surround_coma": (
+        "1982f63619f7bef84e61ce0f974f29795ae139239308a56f969c0b5e99cd8926",
+        "69c6ba5c82570f4a11207f41391f2d2fd7b2ddf8e979443b753002ff042c6d4a",
+    ),
+    "baselines/surround_iql": (
+        "7fa6cb7070ae186eccf9812b578c4c5d8fee493a7ff109e1529170536454bf96",
+        "eb2c4891da8fc923c41d8e9b2a14cc28bed52583b20775511de8b0cfaddb74a7",
+    ),
+    "baselines/surround_qmix": (
+        "53e9c327e114e58bdcbc13c000d56b70b8dcab01888905edac9bfd12a9105750",
+        "17a11bf235305dae9c41b664a50e95cb7e4ba6e0c35422cfcae522e57b47921b",
+    ),
+    "baselines/surround_vdn": (
+        "2782148e79acb10fcff62e1dd4771bade2128483a11b5acccdc0869117d25cbe",
+        "6a1c8be788bdd9a1f6d3effcc3ff5341037776903c6aaf09831c8ebccf08e1fe",
+    ),
+    "magent_pursuit": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "26f358777635dacfc64c6e7de64e1ca594bdd4219b821e3cecd7096f1954bfd1",
     ),
 }
 
