@@ -266,10 +266,13 @@ def load_sources(
         trained.append(str(ckpt["config"]["agents"]))
     if args.policy:
         env_name = args.env or (sources[0][1] if sources else "arena/find_water")
-        plays = {"oracle": ("arena/",), "chaser": ("magent/pursuit", "magent/tiger")}
-        if not env_name.startswith(plays.get(args.policy, ("arena/", "magent/"))):
-            where = " and ".join(plays[args.policy]).replace("arena/", "arena tasks")
-            raise EnvConfigError(f"--policy {args.policy} plays {where}, not {env_name}")
+        plays = {  # policy -> (task name prefixes it plays, how to say them)
+            "oracle": (("arena/",), "arena tasks"),
+            "chaser": (("magent/pursuit", "magent/tiger"), "magent/pursuit and magent/tiger"),
+        }
+        prefixes, said = plays.get(args.policy, (("arena/", "magent/"), "every task"))
+        if not env_name.startswith(prefixes):
+            raise EnvConfigError(f"--policy {args.policy} plays {said}, not {env_name}")
         sources.append((args.policy, env_name, POLICIES[args.policy](seed=args.seed)))
     if not sources:
         raise EnvConfigError("nothing to evaluate: give checkpoints and/or --policy")

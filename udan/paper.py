@@ -520,6 +520,12 @@ def control_section(settings: Settings) -> tuple[str, list[Loaded]]:
     return "\n".join(out), [m for m in loaded.values() if m is not None]
 
 
+def _pooled(results: list[CellResult]) -> str:
+    """Every episode's score of ``results`` pooled: "mean [95 % CI]"."""
+    mean, half = mean_ci(np.concatenate([r.scores for r in results]))
+    return f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}]"
+
+
 def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
     """Table II (pursuit) and Fig. 5 (pursuit, queue, tiger): each committed model evaluated over
     the fleet sizes its scenario's UDAN was trained on; the paper's numbers beside them."""
@@ -553,10 +559,9 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 settings,
                 episodes=settings.magent_episodes,
             )
-            mean, half = mean_ci(np.concatenate([r.scores for r in results]))
             out.append(
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
-                f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}] | {theirs} |"
+                f"{_pooled(results)} | {theirs} |"
             )
         if udan is not None and scenario in CHASED:
             results = evaluate(
@@ -568,10 +573,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 settings.seed,
                 udan.options(),
             )
-            mean, half = mean_ci(np.concatenate([r.scores for r in results]))
             out.append(
-                f"| {scenario} | {CHASER} | — | {udan.trained_agents} | "
-                f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}] | — |"
+                f"| {scenario} | {CHASER} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
         curves += [e for e in entries if loaded[e[0]] is not None]
     table = _curves(settings.models, curves, settings.figures / "fig5_curves.png")

@@ -326,7 +326,7 @@ class ChaserPolicy:
         for b, world in enumerate(env.envs):
             if not env.over[b]:
                 for name, action in self.act_in(world, self._heading[b]).items():
-                    actions[b, env._names.index(name)] = action
+                    actions[b, world.possible_agents.index(name)] = action  # slot i: agent_i
         return actions
 
     def act_in(self, world, heading: np.ndarray) -> dict[str, int]:
