@@ -1,6 +1,7 @@
 """udan-train end to end at tiny sizes: learning, exact resume, checkpoints, bad input."""
 
 import dataclasses
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ from udan.checkpoint import CheckpointError, load_checkpoint, load_model
 from udan.evaluate import CheckpointPolicy, evaluate
 from udan.learner import ALGOS, leader_targets
 from udan.policies import OraclePolicy
-from udan.train import TrainConfig, field_docs, train
+from udan.train import EpisodeReplay, TrainConfig, field_docs, train
 
 BIN = Path(sys.executable).parent
 TINY = {
@@ -83,6 +84,52 @@ def test_an_interrupted_run_resumes_exactly(tmp_path, algo_options):
         if a.get(key) is not None:
             assert all(torch.equal(a[key][k], b[key][k]) for k in a[key]), key
     assert a["progress"]["updates"] == b["progress"]["updates"]
+
+
+def test_a_run_stopped_at_any_moment_of_a_save_resumes_exactly_or_says_why_not(
+    tmp_path, monkeypatch
+):
+    """The replay is written to a pending file before the checkpoint and moved in place after
+    it. Stopped between the two, the run resumes from the pending replay; stopped while writing
+    the next one, it passes over the half-written file; a replay of another step is refused."""
+    flags = {"steps": 1600, "checkpoint_every": 400, **TINY}
+    straight = load_checkpoint(train(TrainConfig(out=str(tmp_path / "a"), **flags), log=quiet))
+
+    commits = []
+
+    def stop_before_the_second_commit(path):
+        commits.append(path)
+        if len(commits) == 2:
+            raise KeyboardInterrupt
+        path.with_name(path.name + ".pending").replace(path)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(EpisodeReplay, "commit", staticmethod(stop_before_the_second_commit))
+        with pytest.raises(KeyboardInterrupt):
+            train(TrainConfig(out=str(tmp_path / "b"), **flags), log=quiet)
+    stopped = tmp_path / "b"
+    assert load_checkpoint(stopped / "checkpoint.pt")["progress"]["steps"] == 800
+    pending = stopped / "replay.npz.pending"
+    assert pending.is_file()
+    mid_save, wrong_step = tmp_path / "mid_save", tmp_path / "wrong_step"
+    shutil.copytree(stopped, mid_save)
+    shutil.copytree(stopped, wrong_step)
+    (mid_save / "replay.npz.pending").replace(mid_save / "replay.npz")
+    (mid_save / "replay.npz.pending").write_bytes(
+        pending.read_bytes()[: pending.stat().st_size // 2]
+    )
+    (wrong_step / "replay.npz.pending").unlink()
+
+    for folder in (stopped, mid_save):
+        resumed = load_checkpoint(
+            train(TrainConfig(out=str(folder), **flags), resume=True, log=quiet)
+        )
+        for key in ("weights", "target_weights"):
+            assert all(torch.equal(straight[key][k], resumed[key][k]) for k in straight[key])
+        assert not (folder / "replay.npz.pending").exists()
+    cli_flags = [f"--{k.replace('_', '-')}={v}" for k, v in flags.items()]
+    refused = run_cli(*cli_flags, "--out", wrong_step, "--resume")
+    one_line_exit_2(refused, "no replay saved at the checkpoint's step 800")
 
 
 def test_learns_the_known_answer_one_agent_no_obstacles(tmp_path):

@@ -92,7 +92,7 @@ def calibrate(cfg: TrainConfig) -> dict:
     replay_bytes *= cfg.buffer_episodes
     with tempfile.TemporaryDirectory() as folder:
         started = time.perf_counter()
-        replay.save(Path(folder) / "replay.npz")
+        replay.save(Path(folder) / "replay.npz", 0)
         torch.save(
             {"weights": model.state_dict(), "optimizer": optim.state_dict()}, Path(folder) / "c.pt"
         )

@@ -190,5 +190,5 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
                 "critic_target_weights": target_critic.state_dict(),
                 "critic_optimizer": critic_optim.state_dict(),
             }
-            run.save(model, None, optim, extra)
+            run.save(model, None, optim, extra=extra)
     return run.close()

@@ -320,11 +320,8 @@ class Learner:
         self.optim = torch.optim.Adam(model.parameters(), lr=run.cfg.lr)
         self.ledger = {"started": 0, "rollouts": {}, "lost": 0, "refused": 0}
         self.ledger |= {"learning": 0.0, "waiting": 0.0}
+        run.restore(model, self.target, self.optim, replay)
         if run.checkpoint is not None:
-            model.load_state_dict(run.checkpoint["weights"])
-            self.target.load_state_dict(run.checkpoint["target_weights"])
-            self.optim.load_state_dict(run.checkpoint["optimizer"])
-            replay.load(run.out / "replay.npz")
             self.ledger |= run.checkpoint.get("workers") or {}
         self.rates: dict[str, float] = {}  # each slot's last rollout throughput, for the log
         self.requested = run.progress["steps"]  # steps of the rollouts counted or asked for
@@ -405,5 +402,4 @@ class Learner:
 
     def save(self, pool: WorkerPool) -> None:
         self.ledger["started"] = pool.started
-        self.run.save(self.model, self.target, self.optim, {"workers": self.ledger})
-        self.replay.save(self.run.out / "replay.npz")
+        self.run.save(self.model, self.target, self.optim, self.replay, {"workers": self.ledger})

@@ -21,6 +21,7 @@ import itertools
 import json
 import sys
 import time
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -230,14 +231,40 @@ class EpisodeReplay:
         idx = rng.integers(0, self.size, size=n)
         return {key: value[idx] for key, value in self.data.items()}
 
-    def save(self, path: Path) -> None:
-        np.savez(path, size=self.size, next=self.next, **self.data)
+    @staticmethod
+    def pending(path: Path) -> Path:
+        """Where :meth:`save` writes before the checkpoint of the same step exists."""
+        return path.with_name(path.name + ".pending")
 
-    def load(self, path: Path) -> None:
-        with np.load(path) as f:
-            self.size, self.next = int(f["size"]), int(f["next"])
-            for key in self.data:
-                self.data[key][...] = f[key]
+    def save(self, path: Path, steps: int) -> None:
+        """Write the replay as it stands after ``steps`` environment steps to ``path``'s pending
+        file; :meth:`commit` moves it in place once the checkpoint of those steps is written, so
+        a run stopped at any moment of a save resumes from a replay and checkpoint of one step."""
+        with self.pending(path).open("wb") as f:
+            np.savez(f, steps=steps, size=self.size, next=self.next, **self.data)
+
+    @classmethod
+    def commit(cls, path: Path) -> None:
+        cls.pending(path).replace(path)
+
+    def load(self, path: Path, steps: int) -> None:
+        """Restore the replay saved at ``steps``: the pending file when the run stopped between
+        its checkpoint and the commit, else ``path``; :class:`CheckpointError` when neither is."""
+        for candidate in (self.pending(path), path):
+            try:
+                with np.load(candidate) as f:
+                    if int(f["steps"]) != steps:
+                        continue
+                    self.size, self.next = int(f["size"]), int(f["next"])
+                    for key in self.data:
+                        self.data[key][...] = f[key]
+                    return
+            except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
+                continue
+        raise CheckpointError(
+            f"{path}: no replay saved at the checkpoint's step {steps:,}, so the run cannot "
+            "resume exactly"
+        )
 
 
 # ---------------------------------------------------------------------------------- rollout
@@ -664,17 +691,36 @@ class Run:
         model: MultiAgentQ,
         target: MultiAgentQ | None,
         optim: torch.optim.Optimizer,
+        replay: EpisodeReplay | None = None,
         extra: dict | None = None,
     ) -> None:
+        """Write the checkpoint, and ``replay`` beside it (value learners) so that a stop at any
+        moment leaves a pair of one step."""
         self.progress["seconds"] = self.seconds_before + time.perf_counter() - self.started
         rng_state = {
             "train": self.rng.bit_generator.state,
             "env": self.env.rng.bit_generator.state,
             "torch": torch.get_rng_state(),
         }
+        replay_path = self.out / "replay.npz"
+        if replay is not None:
+            replay.save(replay_path, self.progress["steps"])
         save_checkpoint(
             self.path, model, target, optim, self.cfg, self.env, self.progress, rng_state, extra
         )
+        if replay is not None:
+            EpisodeReplay.commit(replay_path)
+
+    def restore(
+        self, model: MultiAgentQ, target: MultiAgentQ, optim, replay: EpisodeReplay
+    ) -> None:
+        """A value learner's networks, optimiser and replay as the resumed checkpoint left them."""
+        if self.checkpoint is None:
+            return
+        model.load_state_dict(self.checkpoint["weights"])
+        target.load_state_dict(self.checkpoint["target_weights"])
+        optim.load_state_dict(self.checkpoint["optimizer"])
+        replay.load(self.out / "replay.npz", self.progress["steps"])
 
     def close(self) -> Path:
         self.log("")
@@ -700,12 +746,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     replay = EpisodeReplay.for_run(cfg, env, model.spec)
     run = Run(cfg, env, resume, ("td_loss", "leader_loss"), log)
-    replay_path = run.out / "replay.npz"
-    if run.checkpoint is not None:
-        model.load_state_dict(run.checkpoint["weights"])
-        target.load_state_dict(run.checkpoint["target_weights"])
-        optim.load_state_dict(run.checkpoint["optimizer"])
-        replay.load(replay_path)
+    run.restore(model, target, optim, replay)
     actor = Actor(model, env.batch, env.slots)
     actor.leader_explore = cfg.leader_explore
     while run.running:
@@ -714,8 +755,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
         replay.add(episodes)
         losses = update_round(model, target, optim, replay, run)
         if run.record(epsilon, losses, episode_returns(env, episodes), env_steps(env)):
-            run.save(model, target, optim)
-            replay.save(replay_path)
+            run.save(model, target, optim, replay)
     return run.close()
 
 
