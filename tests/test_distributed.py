@@ -365,13 +365,20 @@ def test_a_real_local_ray_trains_replaces_a_killed_worker_and_resumes(tmp_path):
     killed = []
 
     def kill_a_worker_in_the_first_half(*args, **kwargs):
-        """Both workers up, half the run still to play: one is killed, and the learner (whose
-        thread this is) waits until the process is gone, so the loss is there to be seen at its
-        next wait however slowly a loaded machine lets Ray notice (a kill near the run's end,
-        seen once in CI, was never noticed: the other worker finished the run first)."""
+        """At the first progress line with half the run still to play, the learner (whose
+        thread this is) waits for both workers to be up (a loaded machine starts the second one
+        late: seen once, the first worker played the first half alone and nothing was killed),
+        one is killed, and the learner waits until the process is gone, so the loss is there to
+        be seen at its next wait however slowly Ray notices (a kill near the run's end, seen
+        once in CI, was never noticed: the other worker finished the run first)."""
         played = re.search(r"steps ([\d,]+)", args[0]) if args else None
         half_left = played is not None and int(played[1].replace(",", "")) <= cfg.steps // 2
-        if not killed and half_left and len(workers := ray_workers(os.getpid())) == 2:
+        deadline = time.monotonic() + 60
+        while not killed and half_left and len(workers := ray_workers(os.getpid())) < 2:
+            if time.monotonic() > deadline:
+                raise AssertionError("the second rollout worker never started")
+            time.sleep(0.05)
+        if not killed and half_left:
             os.kill(workers[0], signal.SIGKILL)
             killed.append(workers[0])
             deadline = time.monotonic() + 10
