@@ -19,7 +19,16 @@ from udan.checkpoint import CheckpointError, load_checkpoint
 from udan.envs import EnvConfigError, make_vec
 from udan.envs.magent import make
 from udan.learner import Actor, ModelSpec, MultiAgentQ
-from udan.train import TrainConfig, rollout, train, training_batch, unroll, update
+from udan.train import (
+    TrainConfig,
+    build,
+    rollout,
+    train,
+    training_actor,
+    training_batch,
+    unroll,
+    update,
+)
 
 pytestmark = pytest.mark.magent
 #: queue on an 8x8 map, 1-3 agents: a lone agent is a line at once, so episodes end early.
@@ -313,10 +322,41 @@ def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_retur
     assert discounted.any()
 
 
+@pytest.mark.parametrize(("explore", "move_share"), [("uniform", 5 / 17), ("balanced", 0.5)])
+def test_explore_sets_how_often_a_random_pursuit_wolf_moves(explore, move_share):
+    """ε = 1: every action is the random draw; uniform moves on 5 of 17, balanced on half, and
+    each kind's actions are drawn evenly."""
+    cfg = TrainConfig(env="magent/pursuit", agents="6", map_size=20, obstacles="0",
+                      explore=explore, n_envs=2, hidden=16)  # fmt: skip
+    env, model = build(cfg)
+    actor = training_actor(cfg, model, env)
+    rng = np.random.default_rng(0)
+    obs = env.reset()
+    actor.reset()
+    drawn = np.concatenate(
+        [
+            actor.act(obs, env.present, env.pos, env.joined, 1.0, rng)[env.present]
+            for _ in range(300)
+        ]
+    )
+    moves = drawn < env.spec.n_moves
+    assert moves.mean() == pytest.approx(move_share, abs=0.02)
+    counts = np.bincount(drawn, minlength=17)
+    for kind in (counts[: env.spec.n_moves], counts[env.spec.n_moves :]):
+        assert kind.min() > 0.85 * kind.mean()
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
         (["--env", "magent/chess"], "unknown env"),
+        (["--env", "magent/pursuit", "--explore", "wild"], "--explore must be one of"),
+        (["--env", "magent/queue", "--explore", "balanced"], "tasks with attacks"),
+        (["--env", "arena/find_water", "--explore", "balanced"], "tasks with attacks"),
+        (
+            ["--env", "magent/pursuit", "--algo", "coma", "--agents", "3", "--explore", "balanced"],
+            "value learners",
+        ),
         (["--env", "magent/queue", "--shaping", "1"], "--shaping needs a task with opponents"),
         (["--env", "arena/find_water", "--shaping", "1"], "--shaping needs a task with opponents"),
         (["--env", "magent/pursuit", "--shaping", "-1"], "--shaping must be >= 0"),
@@ -337,7 +377,7 @@ def test_magent_end_to_end_through_the_clis(tmp_path):
     udan-eval's refusals, on magent/pursuit at tiny sizes."""
     small = ["--env", "magent/pursuit", "--map-size", 16, "--max-steps", 20, "--steps", 480,
              "--n-envs", 4, "--batch-episodes", 4, "--updates-per-rollout", 2, "--hidden", 16,
-             "--leader-explore", 0.3, "--shaping", 0.5]  # fmt: skip
+             "--leader-explore", 0.3, "--shaping", 0.5, "--explore", "balanced"]  # fmt: skip
     for algo, agents in (("udan", "2-4"), ("qmix", "3")):
         out = run_cli(*small, "--algo", algo, "--agents", agents, "--out", tmp_path / algo,
                       timeout=600)  # fmt: skip
@@ -346,7 +386,7 @@ def test_magent_end_to_end_through_the_clis(tmp_path):
     ckpt = load_checkpoint(udan)
     assert ckpt["obs_spec"]["scenario"] == "magent/pursuit" and ckpt["config"]["agents"] == "2-4"
     assert ckpt["model_spec"]["obs_dim"] == 635 and ckpt["model_spec"]["n_actions"] == 17
-    assert ckpt["config"]["shaping"] == 0.5
+    assert ckpt["config"]["shaping"] == 0.5 and ckpt["config"]["explore"] == "balanced"
     out = run_cli(udan, "--episodes", 6, "--ablate", "messages=shuffle,leaders=random",
                   "--out", tmp_path / "eval", tool="udan-eval", timeout=600)  # fmt: skip
     assert out.returncode == 0, out.stderr

@@ -22,8 +22,7 @@ import numpy as np
 import torch
 
 from udan.envs import EnvConfigError
-from udan.learner import Actor
-from udan.train import EpisodeReplay, TrainConfig, build, rollout, update
+from udan.train import EpisodeReplay, TrainConfig, build, rollout, training_actor, update
 
 #: Updates timed after the first (which pays one-time costs and is not counted).
 TIMED_UPDATES = 3
@@ -75,8 +74,7 @@ def calibrate(cfg: TrainConfig) -> dict:
     rollouts = max(math.ceil(cfg.batch_episodes / cfg.n_envs), MEASURED_ROLLOUTS)
     replay = EpisodeReplay(rollouts * cfg.n_envs, *shape)
     timed = TimedEnv(env)
-    actor = Actor(model, env.batch, env.slots)
-    actor.leader_explore = cfg.leader_explore
+    actor = training_actor(cfg, model, env)
     rng = np.random.default_rng(cfg.seed)
     started = time.perf_counter()
     for _ in range(rollouts):

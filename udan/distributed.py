@@ -36,7 +36,7 @@ import torch
 
 from udan.cluster import ScaleError, import_ray, ray_session
 from udan.envs import EnvConfigError
-from udan.learner import Actor, ModelSpec, MultiAgentQ
+from udan.learner import ModelSpec, MultiAgentQ
 from udan.train import (
     EpisodeReplay,
     Run,
@@ -45,6 +45,7 @@ from udan.train import (
     env_steps,
     episode_returns,
     rollout,
+    training_actor,
     training_batch,
     update_round,
 )
@@ -84,8 +85,7 @@ class RolloutWorker:
         env_seed, act_seed = np.random.SeedSequence(cfg.seed, spawn_key=(serial,)).spawn(2)
         self.env = training_batch(cfg, cfg.n_envs, env_seed)
         self.model = MultiAgentQ(spec)
-        self.actor = Actor(self.model, self.env.batch, self.env.slots)
-        self.actor.leader_explore = cfg.leader_explore
+        self.actor = training_actor(cfg, self.model, self.env)
         self.rng = np.random.default_rng(act_seed)
         self.serial, self.played = serial, 0
 

@@ -161,6 +161,7 @@ class Actor:
         self.rounds: list[torch.Tensor] = []  # the groups' rounds, made when they are formed
         self.feats = self.messages = torch.zeros(0)
         self.leader_explore = 0.0  # training rollouts set it (TrainConfig.leader_explore)
+        self.random_actions: np.ndarray | None = None  # ε's draw; None: uniform (.explore)
         self.t = 0
 
     def reset(self) -> None:
@@ -265,7 +266,11 @@ class Actor:
         if epsilon > 0:
             explore = rng.random(actions.shape) < epsilon
             n_actions = self.model.spec.n_actions
-            actions = np.where(explore, rng.integers(0, n_actions, actions.shape), actions)
+            if self.random_actions is None:
+                drawn = rng.integers(0, n_actions, actions.shape)
+            else:
+                drawn = rng.choice(n_actions, size=actions.shape, p=self.random_actions)
+            actions = np.where(explore, drawn, actions)
         return actions
 
     def padded_groups(self) -> np.ndarray:

@@ -116,6 +116,10 @@ class TrainConfig:
     rollout, so groups, and gradients through the messages, exist before the scorer picks any."""
     messages: str = "on"
     """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
+    explore: str = "uniform"
+    """What ε's random actions are: uniform over every action (the paper), or balanced: a move
+    or an attack with equal odds, then uniform among them (MAgent tasks, where a uniformly
+    random pursuit wolf attacks on 12 of its 17 actions and hardly moves)."""
     shaping: float = 0.0
     """MAgent tasks with opponents: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s))
     added to each agent's training reward, Φ its nearness to the closest opponent in view
@@ -527,6 +531,13 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         raise EnvConfigError(f"--messages must be on or off, not {cfg.messages!r}")
     if not 0.0 <= cfg.leader_explore <= 1.0:
         raise EnvConfigError(f"--leader-explore {cfg.leader_explore} is not a probability")
+    if cfg.explore not in EXPLORE:
+        raise EnvConfigError(f"--explore must be one of {', '.join(EXPLORE)}, not {cfg.explore!r}")
+    if cfg.explore == "balanced" and (cfg.algo == "coma" or not getattr(env.spec, "n_attacks", 0)):
+        raise EnvConfigError(
+            "--explore balanced is for value learners on tasks with attacks (MAgent), "
+            f"not {cfg.algo} on {cfg.env}"
+        )
     if cfg.leader_target not in LEADER_TARGETS:
         raise EnvConfigError(
             f"--leader-target must be one of {', '.join(LEADER_TARGETS)}, not {cfg.leader_target!r}"
@@ -551,6 +562,21 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
     )
     torch.manual_seed(cfg.seed)
     return env, MultiAgentQ(spec)
+
+
+#: ``TrainConfig.explore``'s choices.
+EXPLORE = ("uniform", "balanced")
+
+
+def training_actor(cfg: TrainConfig, model: MultiAgentQ, env: ArenaBatch) -> Actor:
+    """The acting side of a training rollout: ``cfg``'s leader exploration and the distribution
+    of its ε's random actions (:attr:`TrainConfig.explore`)."""
+    actor = Actor(model, env.batch, env.slots)
+    actor.leader_explore = cfg.leader_explore
+    if cfg.explore == "balanced":
+        moves, attacks = env.spec.n_moves, env.spec.n_attacks
+        actor.random_actions = np.r_[np.full(moves, 0.5 / moves), np.full(attacks, 0.5 / attacks)]
+    return actor
 
 
 class Run:
@@ -747,8 +773,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     replay = EpisodeReplay.for_run(cfg, env, model.spec)
     run = Run(cfg, env, resume, ("td_loss", "leader_loss"), log)
     run.restore(model, target, optim, replay)
-    actor = Actor(model, env.batch, env.slots)
-    actor.leader_explore = cfg.leader_explore
+    actor = training_actor(cfg, model, env)
     while run.running:
         epsilon = run.epsilon()
         episodes = rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0)
