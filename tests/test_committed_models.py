@@ -3,7 +3,8 @@ training was added: the digests below were made with that code (commit 92dec93).
 retrained since has the digests of the code it was committed with (``hidden_goal``: 88b82d8;
 ``find_water``: trained at 2ee4a88, its earlier model kept in ``find_water/minmax``; on the small
 evaluation here the two play the same episodes to the same scores, their exports differ;
-``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569).
+``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
+``baselines/magent_pursuit_iql``: at 092e8d6).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -70,6 +71,10 @@ BEFORE = {
     "surround": (
         "c2715a2d4fc42743dd76225ff94d450c032d4e2011e2f41c9f4fa378a85de46f",
         "23ea9ddb85184b541a88c560b1bcc40874f87bc186179b3a3aecb63a08d86a73",
+    ),
+    "baselines/magent_pursuit_iql": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "cba476b48fe0a9e5705e9412b08678f9d6e05fbb8d0c369577057218134352c7",
     ),
     "baselines/surround_coma": (
         "1982f63619f7bef84e61ce0f974f29795ae139239308a56f969c0b5e99cd8926",
