@@ -95,13 +95,13 @@ def test_a_run_stopped_at_any_moment_of_a_save_resumes_exactly_or_says_why_not(
     flags = {"steps": 1600, "checkpoint_every": 400, **TINY}
     straight = load_checkpoint(train(TrainConfig(out=str(tmp_path / "a"), **flags), log=quiet))
 
-    commits = []
+    commits, commit = [], EpisodeReplay.commit
 
     def stop_before_the_second_commit(path):
         commits.append(path)
         if len(commits) == 2:
             raise KeyboardInterrupt
-        path.with_name(path.name + ".pending").replace(path)
+        commit(path)
 
     with monkeypatch.context() as patch:
         patch.setattr(EpisodeReplay, "commit", staticmethod(stop_before_the_second_commit))
@@ -109,7 +109,7 @@ def test_a_run_stopped_at_any_moment_of_a_save_resumes_exactly_or_says_why_not(
             train(TrainConfig(out=str(tmp_path / "b"), **flags), log=quiet)
     stopped = tmp_path / "b"
     assert load_checkpoint(stopped / "checkpoint.pt")["progress"]["steps"] == 800
-    pending = stopped / "replay.npz.pending"
+    pending = EpisodeReplay.pending(stopped / "replay.npz")
     assert pending.is_file()
     mid_save, wrong_step = tmp_path / "mid_save", tmp_path / "wrong_step"
     shutil.copytree(stopped, mid_save)

@@ -738,7 +738,11 @@ class Run:
             EpisodeReplay.commit(replay_path)
 
     def restore(
-        self, model: MultiAgentQ, target: MultiAgentQ, optim, replay: EpisodeReplay
+        self,
+        model: MultiAgentQ,
+        target: MultiAgentQ,
+        optim: torch.optim.Optimizer,
+        replay: EpisodeReplay,
     ) -> None:
         """A value learner's networks, optimiser and replay as the resumed checkpoint left them."""
         if self.checkpoint is None:
