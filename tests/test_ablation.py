@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from udan.envs import make_vec
+from udan.evaluate import Z95, CellResult, format_ablation
 from udan.leaders import collect, format_leaders, row
 from udan.learner import Actor, ModelSpec, MultiAgentQ
 from udan.probe import ridge_fit, ridge_r2
@@ -153,6 +154,31 @@ def test_probe_finds_a_goal_in_a_message_that_carries_it_and_none_in_one_that_do
     assert ridge_r2(ridge_fit(*train), *test) > 0.9
     train, test = data(3000, False), data(3000, False)
     assert abs(ridge_r2(ridge_fit(*train), *test)) < 0.02
+
+
+def test_ablation_table_pairs_episodes_per_n_and_pools_every_n_in_its_last_row():
+    def cells(scores_by_n):
+        return [
+            CellResult(n, 0, len(s), float(np.mean(s)), 0.0, scores=np.array(s, dtype=float))
+            for n, s in scores_by_n.items()
+        ]
+
+    full = cells({2: [4.0, 6.0, 8.0], 3: [2.0, 2.0, 2.0]})
+    shuffled = cells({2: [3.0, 5.0, 7.0], 3: [1.0, 1.0, 4.0]})  # pooled: -1 five times, +2 once
+    table = format_ablation(full, {"messages=shuffle": shuffled}, "t")
+    assert "| 2 | 6.00 | 5.00 | -1.00 [-1.00, -1.00] | -17 % |" in table
+    pooled = -3 / 6
+    half = Z95 * np.std([-1, -1, -1, -1, -1, 2], ddof=1) / np.sqrt(6)
+    assert (
+        f"| 2-3 pooled | 4.00 | 3.50 | {pooled:+.2f} [{pooled - half:+.2f}, {pooled + half:+.2f}]"
+        " | -12 % |"
+    ) in table
+    single = format_ablation(full[:1], {"messages=shuffle": shuffled[:1]}, "t")
+    assert "pooled" not in single
+    nothing = cells({2: [0.0, 0.0]})
+    assert "| 2 | 0.00 | 0.00 | +0.00 [+0.00, +0.00] | — |" in format_ablation(
+        nothing, {"groups": nothing}, "t"
+    )
 
 
 def test_leader_row_counts_leaders_gains_and_the_min_max_midpoint():

@@ -126,6 +126,9 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     chaser = next(line for line in text.splitlines() if line.startswith("| pursuit | scripted"))
     assert re.search(r"\| 2-3 \| -?\d+\.\d\d \[", chaser), chaser
     assert not any(line.startswith("| queue | scripted") for line in text.splitlines())
+    for scenario, trained in (("queue", "1-3"), ("pursuit", "2-3")):
+        shuffle = text.index(f"**{scenario}: UDAN with shuffled messages, paired")
+        assert f"| {trained} pooled |" in text[shuffle:].split("\n\n", 2)[1]
 
 
 @pytest.mark.parametrize(

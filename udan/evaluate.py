@@ -202,20 +202,28 @@ def format_ablation(
     full: list[CellResult], ablated: dict[str, list[CellResult]], title: str
 ) -> str:
     """Markdown table per agent count (cells of every obstacle count pooled by episode): the
-    full model's score, each ablation's, and the paired difference with its 95 % CI."""
-    head = "| agents | full | " + " | ".join(f"{m} | Δ {m} [95 % CI]" for m in ablated) + " |"
-    lines = [f"**{title}**", "", head, "|---" * (2 + 2 * len(ablated)) + "|"]
-    for n in sorted({r.agents for r in full}):
-        base = pooled_scores(full, n)
+    full model's score, each ablation's, and the paired difference with its 95 % CI and as a
+    share of the full score. With more than one agent count, a last row pools every episode:
+    the communication criterion (a loss of >= 10 %, its CI excluding 0) is read there."""
+    head = "| agents | full | " + " | ".join(f"{m} | Δ {m} [95 % CI] | Δ %" for m in ablated) + " |"
+    lines = [f"**{title}**", "", head, "|---" * (2 + 3 * len(ablated)) + "|"]
+    counts = sorted({r.agents for r in full})
+    rows = [(str(n), (n,)) for n in counts]
+    if len(counts) > 1:
+        rows.append((f"{counts[0]}-{counts[-1]} pooled", tuple(counts)))
+    for label, ns in rows:
+        base = np.concatenate([pooled_scores(full, n) for n in ns])
         cells = [f"{base.mean():.2f}"]
         for results in ablated.values():
-            scores = pooled_scores(results, n)
+            scores = np.concatenate([pooled_scores(results, n) for n in ns])
             mean, half = mean_ci(scores - base)  # paired: the same episodes in the same order
+            share = f"{100 * mean / abs(base.mean()):+.0f} %" if base.mean() else "—"
             cells += [
                 f"{scores.mean():.2f}",
                 f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]",
+                share,
             ]
-        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -538,7 +538,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         "| scenario | policy | trained on N | tested on N | ours [95 % CI] | paper (Table II) |",
         "|---|---|---|---|---|---|",
     ]
-    everything, curves = [], []
+    everything, curves, shuffles = [], [], []
     for scenario, entries in MAGENT.items():
         loaded = load_models(settings.models, entries)
         udan = loaded["UDAN"]
@@ -563,6 +563,18 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
                 f"{_pooled(results)} | {theirs} |"
             )
+            if model is udan and udan.model.spec.communicates:
+                shuffled = _play(
+                    udan,
+                    udan.checkpoint["env"],
+                    parse_range(tested, "agents"),
+                    (0, 0),
+                    settings,
+                    "messages=shuffle",
+                    settings.magent_episodes,
+                )
+                title = f"{scenario}: UDAN with shuffled messages, paired on the same episodes"
+                shuffles += ["", format_ablation(results, {"messages=shuffle": shuffled}, title)]
         if udan is not None and scenario in CHASED:
             results = evaluate(
                 f"magent/{scenario}",
@@ -578,6 +590,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             )
         curves += [e for e in entries if loaded[e[0]] is not None]
     table = _curves(settings.models, curves, settings.figures / "fig5_curves.png")
+    out += shuffles
     out += [
         "",
         "Fig. 5 (learning curves): "
