@@ -4,7 +4,7 @@ retrained since has the digests of the code it was committed with (``hidden_goal
 ``find_water``: trained at 2ee4a88, its earlier model kept in ``find_water/minmax``; on the small
 evaluation here the two play the same episodes to the same scores, their exports differ;
 ``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
-``baselines/magent_pursuit_iql``: at 092e8d6).
+``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -95,6 +95,10 @@ BEFORE = {
     "magent_pursuit": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "26f358777635dacfc64c6e7de64e1ca594bdd4219b821e3cecd7096f1954bfd1",
+    ),
+    "magent_tiger": (
+        "d6ab7da2424be1df56d52ceb79d46452c041947cbb464e17de54815df11dec39",
+        "2a2be4d2aff5545df8b862cdc6f30f9178d23aa358256c69814628f7cc1b8dee",
     ),
 }
 
