@@ -164,21 +164,23 @@ def test_ablation_table_pairs_episodes_per_n_and_pools_every_n_in_its_last_row()
         ]
 
     full = cells({2: [4.0, 6.0, 8.0], 3: [2.0, 2.0, 2.0]})
-    shuffled = cells({2: [3.0, 5.0, 7.0], 3: [1.0, 1.0, 4.0]})  # pooled: -1 five times, +2 once
+    shuffled = cells({2: [3.0, 5.0, 7.0], 3: [1.0, 1.0, 3.4]})  # pooled: -1 five times, +1.4 once
     table = format_ablation(full, {"messages=shuffle": shuffled}, "t")
     assert "| 2 | 6.00 | 5.00 | -1.00 [-1.00, -1.00] | -17 % |" in table
-    pooled = -3 / 6
-    half = Z95 * np.std([-1, -1, -1, -1, -1, 2], ddof=1) / np.sqrt(6)
-    assert (
-        f"| 2-3 pooled | 4.00 | 3.50 | {pooled:+.2f} [{pooled - half:+.2f}, {pooled + half:+.2f}]"
-        " | -12 % |"
-    ) in table
+    pooled = -3.6 / 6
+    half = Z95 * np.std([-1, -1, -1, -1, -1, 1.4], ddof=1) / np.sqrt(6)
+    assert table.splitlines()[-1] == (
+        f"| 2-3 pooled | 4.00 | 3.40 | {pooled:+.2f} [{pooled - half:+.2f}, {pooled + half:+.2f}]"
+        " | -15 % |"
+    )
     single = format_ablation(full[:1], {"messages=shuffle": shuffled[:1]}, "t")
     assert "pooled" not in single
     nothing = cells({2: [0.0, 0.0]})
     assert "| 2 | 0.00 | 0.00 | +0.00 [+0.00, +0.00] | — |" in format_ablation(
         nothing, {"groups": nothing}, "t"
     )
+    losing = format_ablation(cells({2: [-4.0, -2.0]}), {"groups": cells({2: [-5.0, -3.0]})}, "t")
+    assert "| 2 | -3.00 | -4.00 | -1.00 [-1.00, -1.00] | -33 % |" in losing  # a loss stays a loss
 
 
 def test_leader_row_counts_leaders_gains_and_the_min_max_midpoint():

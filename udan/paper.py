@@ -528,7 +528,9 @@ def _pooled(results: list[CellResult]) -> str:
 
 def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
     """Table II (pursuit) and Fig. 5 (pursuit, queue, tiger): each committed model evaluated over
-    the fleet sizes its scenario's UDAN was trained on; the paper's numbers beside them."""
+    the fleet sizes its scenario's UDAN was trained on; the paper's numbers beside them; and
+    what shuffled messages cost each UDAN, paired on the same episodes (the communication
+    criterion is read in that table's pooled row)."""
     out = [
         "## Table II and Fig. 5: MAgent pursuit, tiger and queue",
         "",
@@ -551,14 +553,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 continue
             everything.append(model)
             tested = (udan or model).trained_agents
-            results = _play(
-                model,
-                model.checkpoint["env"],
-                parse_range(tested, "agents"),
-                (0, 0),
-                settings,
-                episodes=settings.magent_episodes,
-            )
+            env, agents = model.checkpoint["env"], parse_range(tested, "agents")
+            results = _play(model, env, agents, (0, 0), settings, episodes=settings.magent_episodes)
             out.append(
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
                 f"{_pooled(results)} | {theirs} |"
@@ -566,8 +562,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             if model is udan and udan.model.spec.communicates:
                 shuffled = _play(
                     udan,
-                    udan.checkpoint["env"],
-                    parse_range(tested, "agents"),
+                    env,
+                    agents,
                     (0, 0),
                     settings,
                     "messages=shuffle",
