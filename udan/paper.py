@@ -363,6 +363,22 @@ def _play(
     )
 
 
+def _shuffle_table(
+    udan: Loaded,
+    full: list[CellResult],
+    env: str,
+    agents,
+    obstacles,
+    settings: Settings,
+    name: str,
+    episodes: int = 0,
+) -> str:
+    """What shuffled messages cost ``udan``, paired on the episodes of its ``full`` results."""
+    shuffled = _play(udan, env, agents, obstacles, settings, "messages=shuffle", episodes)
+    title = f"{name}: UDAN with shuffled messages, paired on the same episodes"
+    return format_ablation(full, {"messages=shuffle": shuffled}, title)
+
+
 def _curves(models: Path, entries, png: Path | None) -> str | None:
     """The learning-curve table of the entries whose folder keeps its ``progress.csv``."""
     runs = [
@@ -426,13 +442,8 @@ def arena_section(
                 "",
             ]
         if loaded["UDAN"].model.spec.communicates:
-            shuffled = _play(loaded["UDAN"], env, agents, obstacles, settings, "messages=shuffle")
             out += [
-                format_ablation(
-                    udan,
-                    {"messages=shuffle": shuffled},
-                    f"{table}: UDAN with shuffled messages, paired on the same episodes",
-                ),
+                _shuffle_table(loaded["UDAN"], udan, env, agents, obstacles, settings, table),
                 "",
             ]
     trained = {label: m.trained_agents for label, m in loaded.items() if m is not None}
@@ -503,17 +514,14 @@ def control_section(settings: Settings) -> tuple[str, list[Loaded]]:
     lines.append(
         "| oracle (exact) | " + " | ".join(f"{oracle_score(*size, n):.2f}" for n in columns) + " |"
     )
-    shuffled = _play(loaded["UDAN"], env, agents, obstacles, settings, "messages=shuffle")
     out += [
         "No agent can solve it alone; an agent that cannot hear the others scores at most the "
         "bound (docs/environments.md).",
         "",
         *lines,
         "",
-        format_ablation(
-            tables["UDAN"],
-            {"messages=shuffle": shuffled},
-            "hidden_goal: UDAN with shuffled messages, paired on the same episodes",
+        _shuffle_table(
+            loaded["UDAN"], tables["UDAN"], env, agents, obstacles, settings, "hidden_goal"
         ),
         "",
     ]
@@ -560,17 +568,10 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 f"{_pooled(results)} | {theirs} |"
             )
             if model is udan and udan.model.spec.communicates:
-                shuffled = _play(
-                    udan,
-                    env,
-                    agents,
-                    (0, 0),
-                    settings,
-                    "messages=shuffle",
-                    settings.magent_episodes,
+                shuffle = _shuffle_table(
+                    udan, results, env, agents, (0, 0), settings, scenario, settings.magent_episodes
                 )
-                title = f"{scenario}: UDAN with shuffled messages, paired on the same episodes"
-                shuffles += ["", format_ablation(results, {"messages=shuffle": shuffled}, title)]
+                shuffles += ["", shuffle]
         if udan is not None and scenario in CHASED:
             results = evaluate(
                 f"magent/{scenario}",
