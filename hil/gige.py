@@ -5,7 +5,10 @@ GVSP stream packets over UDP — so the edge's ``aravis://127.0.0.1`` source mee
 protocol stack a lab's camera puts on the wire. Its fill-pattern hook is given the HIL's
 rendered frames here: each buffer gets the newest frame of the virtual camera ``--camera-name``
 when the fake camera's frame clock fires, and keeps the timestamp the fake camera gave it then
-(its exposure; the rendered picture may be up to one render period older). The hook is set through
+(its exposure; the rendered picture may be up to one render period older). A picture older than
+``--max-lag-ms`` at that instant (a renderer starved on a loaded host) keeps its own capture time
+instead, so the frame says how old it is (the edge finds it stale) rather than showing an old
+scene as new: a real camera exposes at its timestamp. The hook is set through
 ctypes on the wheel's own libaravis (through PyGObject, a Python callback given to
 ``set_fill_pattern`` hangs the camera), and it serves Mono8, the renderer's format.
 
@@ -30,6 +33,7 @@ import ctypes
 import fcntl
 import importlib.util
 import json
+import math
 import os
 import signal
 import sys
@@ -80,6 +84,7 @@ def libaravis() -> ctypes.CDLL:
     lib.arv_fake_camera_set_fill_pattern.argtypes = [
         ctypes.c_void_p, _FILL, ctypes.c_void_p, ctypes.c_void_p
     ]  # fmt: skip
+    lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
     lib.arv_buffer_get_data.restype = ctypes.c_void_p
     lib.arv_buffer_get_data.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
     for name in ("arv_buffer_get_image_width", "arv_buffer_get_image_height"):
@@ -114,12 +119,16 @@ class GigeCamera:
         lost_ratio: float = 0.0,
         delay_s: float = 0.0,
         delay_block_s: float = 0.0,
+        max_lag_s: float = math.inf,
     ) -> None:
         self.delay_s = delay_s
+        self.max_lag_ns = max_lag_s * 1e9
         self.delay_block_ns = round(delay_block_s * 1e9)
         self.served = 0
         """Buffers filled with a rendered frame."""
         self.delayed = 0
+        self.old = 0
+        """Buffers whose picture was older than ``max_lag_s``: stamped with its capture time."""
         self.failed = 0
         """Buffers the hook could not fill (no frame yet, an error)."""
         self._buf, self._layout = attach_frames(camera_name)
@@ -153,8 +162,8 @@ class GigeCamera:
 
     def _fill(self, buffer: int, _data: int, _exposure: int, _gain: int, pixel_format: int) -> None:
         """The fake camera's fill hook, in its stream thread, after it stamped the buffer with
-        its frame clock (this host's realtime clock): the newest rendered frame, then the delay
-        asked for."""
+        its frame clock (this host's realtime clock): the newest rendered frame (restamped with
+        its capture time when older than ``max_lag_ns``), then the delay asked for."""
         stamped_ns = time.monotonic_ns()  # the fake camera stamped the buffer just before
         try:
             lib = self._lib
@@ -164,7 +173,11 @@ class GigeCamera:
             if got is None or pixel_format != MONO8:
                 self.failed += 1
                 return
-            image = got[0]
+            image, captured_ns = got
+            if stamped_ns - captured_ns > self.max_lag_ns:
+                self.old += 1
+                realtime_ns = captured_ns + time.time_ns() - time.monotonic_ns()
+                lib.arv_buffer_set_timestamp(buffer, realtime_ns)
             if image.shape != (height, width):
                 image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
             # the buffer holds the payload of the mode the stream started in; its own size
@@ -207,8 +220,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--serial", default="UDAN-HIL", help="the camera's serial number")
     p.add_argument("--lost-ratio", type=float, default=0.0, help="stream packets dropped")
     p.add_argument("--delay-ms", type=float, default=0.0, help="hold frames this long")
-    p.add_argument("--delay-block-s", type=float, default=0.0,
-                   help="hold frames in every other block of this many seconds")  # fmt: skip
+    p.add_argument(
+        "--delay-block-s",
+        type=float,
+        default=0.0,
+        help="hold frames in every other block of this many seconds",
+    )
+    p.add_argument("--max-lag-ms", type=float, default=math.inf,
+                   help="a picture older than this keeps its own capture time")  # fmt: skip
     return p
 
 
@@ -216,9 +235,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Serve until SIGTERM or the virtual camera's end; print a ready line, then counts."""
     exit_with_parent()  # udan-hil run asks: its end is our SIGTERM, however it ended
     args = _parser().parse_args(argv)
-    if not 0.0 <= args.lost_ratio <= 1.0 or args.delay_ms < 0 or args.delay_block_s < 0:
-        print(f"{PROG}: error: --lost-ratio in [0, 1], --delay-ms and --delay-block-s >= 0",
-              file=sys.stderr)  # fmt: skip
+    if (
+        not 0.0 <= args.lost_ratio <= 1.0
+        or min(args.delay_ms, args.delay_block_s) < 0
+        or not args.max_lag_ms > 0
+    ):
+        print(f"{PROG}: error: --lost-ratio in [0, 1], --delay-ms and --delay-block-s >= 0, "
+              "--max-lag-ms > 0", file=sys.stderr)  # fmt: skip
         return 2
     os.nice(CAMERA_NICENESS)  # a camera: below the cars and the edge, as the renderer
     stop = threading.Event()
@@ -229,6 +252,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         camera = GigeCamera(
             args.camera_name, args.serial, lost_ratio=args.lost_ratio,
             delay_s=args.delay_ms / 1000, delay_block_s=args.delay_block_s,
+            max_lag_s=args.max_lag_ms / 1000,
         )  # fmt: skip
     except (GigeError, CameraError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
@@ -238,7 +262,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         while not stop.wait(0.1) and not camera.ended:
             pass
     finally:
-        counts = {"served": camera.served, "delayed": camera.delayed, "failed": camera.failed}
+        counts = {"served": camera.served, "delayed": camera.delayed, "old": camera.old,
+                  "failed": camera.failed}  # fmt: skip
         camera.close()
     with contextlib.suppress(BrokenPipeError):
         print(json.dumps(counts), flush=True)

@@ -286,6 +286,7 @@ class Loop:
             "--lost-ratio", str(camera.get("lost_ratio", 0.0)),
             "--delay-ms", str(camera.get("delay_ms", 0.0)),
             "--delay-block-s", str(DELAY_BLOCK_S),
+            "--max-lag-ms", str(picture_lag_ns(self.args) / 1e6),
         ]  # fmt: skip
         proc = self._spawn("gige", cmd)
         line = proc.stdout.readline() if proc.stdout else ""
@@ -549,9 +550,15 @@ async def run_loop(
     return result
 
 
+def picture_lag_ns(args: argparse.Namespace) -> int:
+    """How much older than its timestamp a frame's picture may be: 0 for the virtual camera
+    (it stamps the instant it draws), two frame periods for the fake GigE camera (it serves the
+    newest render when its own clock fires, and stamps an older one with the render's time)."""
+    return 0 if args.camera == "virtual" else round(2e9 / args.fps)
+
+
 def check_recording(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
-    """The edge's recorded sightings against the world's truth (the fake GigE camera's picture
-    may be up to two frame periods older than its timestamp)."""
+    """The edge's recorded sightings against the world's truth, within `picture_lag_ns`."""
     from udan.edge.flightlog import FlightLogError, read_flight_log
     from udan.hil.truth import Truth, check_sightings
 
@@ -559,8 +566,7 @@ def check_recording(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
         log = read_flight_log(folder / "run.mcap")
     except FlightLogError as err:
         return {"error": str(err)}
-    lag_ns = 0 if args.camera == "virtual" else round(2e9 / args.fps)
-    return check_sightings(log, Truth(folder / "truth.jsonl"), lag_ns)
+    return check_sightings(log, Truth(folder / "truth.jsonl"), picture_lag_ns(args))
 
 
 def planned_episodes(args: argparse.Namespace) -> int | None:

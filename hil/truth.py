@@ -6,7 +6,8 @@ with confidence (inside the grid, not uncertain), recorded in a flight recording
 ``/vision/scene``, is right when its cell is one the car held, or moved between, during the
 ``lag_ns`` before the frame's capture time: a camera's picture can be older than its timestamp
 (the fake GigE camera serves the newest rendered frame when its own frame clock fires, up to a
-render period later; the virtual camera stamps the instant it draws, lag 0). Anything else is a
+render period later, and stamps a picture older than the lag with its own capture time; the
+virtual camera stamps the instant it draws, lag 0). Anything else is a
 confident wrong cell, the one failure the vision must never have.
 """
 

@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -94,14 +94,18 @@ def test_held_frames_alternate_in_blocks():
 
 # -- a real GigE Vision stream on loopback ---------------------------------------------------
 @contextmanager
-def gige(*args: str, pattern: np.ndarray = PATTERN) -> Iterator[subprocess.Popen]:
-    """A virtual camera publishing ``pattern`` at 40 FPS, served by the fake GigE camera."""
+def gige(
+    *args: str,
+    pattern: np.ndarray = PATTERN,
+    draw: Callable[[int, np.ndarray], object] | None = None,
+) -> Iterator[subprocess.Popen]:
+    """A virtual camera publishing ``pattern`` (or what ``draw(t_ns, out)`` draws) at 40 FPS,
+    served by the fake GigE camera."""
     height, width = pattern.shape
+    draw = draw or (lambda t, out: np.copyto(out, pattern))
     with VirtualCamera(f"udan-test-{uuid.uuid4().hex[:10]}", width, height) as vcam:
         stop = threading.Event()
-        render = threading.Thread(
-            target=vcam.run, args=(lambda t, out: np.copyto(out, pattern),), kwargs={"stop": stop}
-        )
+        render = threading.Thread(target=vcam.run, args=(draw,), kwargs={"stop": stop})
         render.start()
         proc = start_bridge(vcam.name, *args)
         try:
@@ -236,3 +240,28 @@ async def test_an_unplugged_camera_is_lost_then_reopened_when_it_returns():
             bridge.wait(30)
             stop.set()
             render.join()
+
+
+def test_a_picture_older_than_the_lag_allowed_keeps_its_capture_time():
+    """A starved renderer (here: one render takes 400 ms) leaves the fake camera serving an old
+    picture at every tick of its frame clock; past ``--max-lag-ms`` the frame carries the
+    picture's own capture time, so the source finds it stale instead of reading an old scene as
+    new. Each picture carries its capture time in its first 8 pixels: no frame returned shows a
+    picture more than the lag older than its timestamp."""
+    stalls = iter([False] * 20 + [True])
+
+    def draw(t_ns: int, out: np.ndarray) -> None:
+        np.copyto(out, PATTERN)
+        out[0, :8] = np.frombuffer(np.int64(t_ns).tobytes(), np.uint8)
+        if next(stalls, False):
+            time.sleep(0.4)
+
+    with gige("--max-lag-ms", "50", draw=draw), open_camera(CAMERA) as source:
+        frames = [source.read() for _ in range(60)]
+        stale = source.counters()["stale"]
+    lags_ms = [
+        (f.t_capture_ns - int(np.frombuffer(f.image[0, :8].tobytes(), np.int64)[0])) / 1e6
+        for f in frames
+    ]
+    assert max(lags_ms) <= 50 + 2, lags_ms  # (the clock mapping's error: well under 2 ms)
+    assert stale >= 5  # the 400 ms stall's ticks: their frames came old, skipped and counted
