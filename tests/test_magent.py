@@ -127,6 +127,38 @@ def test_sheep_flee_from_a_wolf_in_view() -> None:
     assert tuple(sheep) == (11, 11)  # the one neighbour farthest from the wolf
 
 
+@pytest.mark.parametrize(("alertness", "fled"), [(1.0, (1.0, 1.0)), (0.5, (0.35, 0.65)),
+                                                (0.0, (0.05, 0.2))])  # fmt: skip
+def test_prey_alertness_is_the_share_of_steps_a_sheep_in_view_flees(alertness, fled) -> None:
+    """A sheep next to a wolf flees to the one farthest cell when alert, wanders when not (1 of
+    its 9 moves is that cell): over 400 such steps it reaches (11, 11) on about
+    ``alertness + (1 - alertness) / 9`` of them."""
+    env = make("magent/pursuit", agents=1, map_size=20, seed=3, prey_alertness=alertness)
+    reached = 0
+    for _ in range(400):
+        env.reset(options={"layout": {"agents": [(9, 9)], "opponents": [(10, 10)]}})
+        _step(env, {})
+        reached += tuple(env.positions()[1][0]) == (11, 11)
+    assert fled[0] <= reached / 400 <= fled[1]
+
+
+def test_full_alertness_plays_the_task_s_episodes_draw_for_draw() -> None:
+    """The default sheep and sheep of alertness 1 play the same episodes, so every run and
+    model made before the option still plays as it did."""
+    runs = []
+    for options in ({}, {"prey_alertness": 1.0}):
+        env = make("magent/pursuit", agents=(3, 6), map_size=20, seed=5, **options)
+        rng = np.random.default_rng(0)
+        env.reset(seed=11)
+        trace = []
+        for _ in range(40):
+            acts = {a: int(rng.integers(env.action_space(a).n)) for a in env.agents}
+            _step(env, acts)
+            trace.append(env.positions()[1].copy())
+        runs.append(np.stack(trace))
+    assert np.array_equal(*runs)
+
+
 def test_tiger_pair_attack_rule() -> None:
     # A deer at (1, 1) with tigers at (2, 1) and (1, 2) is walled in and cannot step away.
     env = make("magent/tiger", agents=(2, 3), map_size=10)
@@ -219,6 +251,8 @@ def test_queue_reward_and_end() -> None:
         ("magent/queue", {"speed": 3}),
         ("magent/pursuit", {"end_when_lined_up": False}),
         ("magent/pursuit", {"render_mode": "human"}),
+        ("magent/pursuit", {"prey_alertness": 1.5}),
+        ("magent/tiger", {"prey_alertness": 0.5}),
     ],
 )
 def test_bad_input_raises(name: str, kwargs: dict) -> None:

@@ -442,10 +442,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", help="task (default: the checkpoints' env, or find_water)")
     parser.add_argument(
         "--agents",
-        help="agent counts, e.g. 1-5 (columns; default: arena 1-5, else the checkpoint's range)",
+        help="agent counts, e.g. 1-5 (columns; default: arena 1-5, else the checkpoint's range, "
+        "or the scenario's)",
     )
     parser.add_argument(
         "--obstacles", help="obstacle counts, e.g. 0-9 (rows; default: arena 0-9, MAgent 0)"
+    )
+    parser.add_argument(
+        "--prey-alertness",
+        type=float,
+        help="magent/pursuit: the chance a sheep that sees a wolf flees rather than wanders "
+        "(default 1, the task; lower, the sheep of a --prey-curriculum training)",
     )
     parser.add_argument("--episodes", type=int, default=100, help="episodes per cell")
     parser.add_argument("--seed", type=int, default=0, help="seed of the layouts and the policy")
@@ -512,9 +519,15 @@ def main(argv: list[str] | None = None) -> int:
                 print(curves)
                 return 0
         sources, options, trained = load_sources(args)
+        if args.prey_alertness is not None:
+            options = {**options, "prey_alertness": args.prey_alertness}
         env_name = sources[0][1]
         arena = env_name.startswith("arena/")
-        agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
+        if arena:
+            trained = "1-5"
+        elif trained is None:  # a reference policy alone: the scenario's own range
+            trained = make_vec(env_name, batch=1, **options).config.agents
+        agents = parse_range(args.agents or trained, "--agents")
         obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
         make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
         if args.csv is not None and len(sources) > 1:

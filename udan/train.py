@@ -124,6 +124,10 @@ class TrainConfig:
     """MAgent tasks with opponents: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s))
     added to each agent's training reward, Φ its nearness to the closest opponent in view
     (policy-invariant; scores and the logged return are the task's own; 0: none)."""
+    prey_curriculum: float = 0.0
+    """MAgent pursuit: the sheep's alertness (the chance that a sheep seeing a wolf flees rather
+    than wanders; 1 in the task) rises from 0 to 1 over this fraction of training (0: the
+    task's sheep throughout; a curriculum, docs/algorithm.md)."""
     leader_target: str = "signed"
     """UDAN: the leader classifier's target from ΔQ: signed (lead when messages raise the
     group's values) or minmax (the paper's eq. 9; runs older than this field used it)."""
@@ -360,6 +364,12 @@ def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
         raise EnvConfigError(
             f"--shaping needs a task with opponents (magent/pursuit, magent/tiger), not {cfg.env}"
         )
+    if not 0.0 <= cfg.prey_curriculum <= 1.0:
+        raise EnvConfigError(f"--prey-curriculum must lie in [0, 1], got {cfg.prey_curriculum}")
+    if cfg.prey_curriculum and not hasattr(env, "prey_alertness"):
+        raise EnvConfigError(f"--prey-curriculum is for magent/pursuit, not {cfg.env}")
+    if cfg.prey_curriculum and (cfg.workers or cfg.address):
+        raise EnvConfigError("--prey-curriculum trains in one process, not with --workers")
     return ShapedRewards(env, cfg.shaping, cfg.gamma) if cfg.shaping else env
 
 
@@ -660,6 +670,14 @@ class Run:
         frac = min(steps / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
         return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
+    def prey_alertness(self) -> float:
+        """The sheep's alertness for the next rollout: 1 (the task's) unless ``prey_curriculum``
+        has it rise linearly from 0 over that fraction of the run."""
+        cfg = self.cfg
+        if not cfg.prey_curriculum:
+            return 1.0
+        return min(self.progress["steps"] / (cfg.prey_curriculum * cfg.steps), 1.0)
+
     def record(
         self,
         epsilon: float,
@@ -672,6 +690,7 @@ class Run:
         ``returns`` (:func:`episode_returns`) and log it; True when a checkpoint is due.
         ``worker_rates``: each rollout worker's own steps per second, for the log."""
         progress = self.progress
+        alertness = self.prey_alertness()  # the rollout's, read before its steps are counted
         self.returns = (self.returns + returns.tolist())[-200:]
         progress["steps"] += steps
         progress["episodes"] += len(returns)
@@ -695,6 +714,7 @@ class Run:
                 "return": mean_return,
                 "epsilon": epsilon,
                 "steps_per_s": rate,
+                **({"prey_alertness": alertness} if self.cfg.prey_curriculum else {}),
                 **losses,
             }.items():
                 self.writer.add_scalar(f"train/{key}", value, progress["steps"])
@@ -704,6 +724,7 @@ class Run:
         self.log(
             f"\r[{self.cfg.algo}] {progress['steps'] / self.cfg.steps:6.1%} steps "
             f"{progress['steps']:,} return {mean_return:6.2f} eps {epsilon:.2f} "
+            f"{f'alertness {alertness:.2f} ' if self.cfg.prey_curriculum else ''}"
             f"{rate:,.0f} steps/s{per_worker if worker_rates else ''}",
             end="",
         )
@@ -780,6 +801,8 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     actor = training_actor(cfg, model, env)
     while run.running:
         epsilon = run.epsilon()
+        if cfg.prey_curriculum:
+            env.prey_alertness = run.prey_alertness()
         episodes = rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0)
         replay.add(episodes)
         losses = update_round(model, target, optim, replay, run)

@@ -439,7 +439,25 @@ class PursuitEnv(MagentEnv):
     sheep is never killed and a trapped sheep keeps paying. The sheep's speed 1.5 is exact in
     MAgent2's terms: speed is the radius of the move circle, so a sheep steps to any of its 8
     neighbours (diagonals included) while a wolf (speed 1) steps to 4.
+
+    ``prey_alertness`` (1, the task, by default) is the chance, drawn per sheep and step, that a
+    sheep that sees a wolf flees rather than wanders; below 1 it makes a training curriculum
+    (``udan-train --prey-curriculum``), as MAgent's own pursuit trains its prey from random.
     """
+
+    def __init__(self, name: str, *, prey_alertness: float = 1.0, **kwargs: Any) -> None:
+        self.prey_alertness = prey_alertness
+        super().__init__(name, **kwargs)
+
+    @property
+    def prey_alertness(self) -> float:
+        return self._prey_alertness
+
+    @prey_alertness.setter
+    def prey_alertness(self, value: float) -> None:
+        if not 0.0 <= value <= 1.0:
+            raise EnvConfigError(f"prey_alertness must lie in [0, 1], got {value}")
+        self._prey_alertness = float(value)
 
     default_map_size = 100
     default_max_steps = 300
@@ -457,7 +475,8 @@ class PursuitEnv(MagentEnv):
         """Each sheep moves to the free neighbour cell farthest from the wolves it sees.
 
         "Farthest" maximises the distance to the nearest wolf within view range 4; a sheep that
-        sees no wolf moves at random. Ties are broken at random.
+        sees no wolf (or, below full ``prey_alertness``, is not alert this step) moves at random.
+        Ties are broken at random.
         """
         wolves, sheep = self.positions()
         moves = move_offsets(self.opponent_attrs["speed"])
@@ -474,7 +493,10 @@ class PursuitEnv(MagentEnv):
         noise = self._rng.random(dist.shape)
         flee = np.where(free, np.where(np.isinf(dist), 0.0, dist) + 1e-3 * noise, -np.inf)
         wander = self._rng.integers(len(moves), size=len(sheep))
-        return np.where(seen.any(axis=1), flee.argmax(axis=1), wander).astype(np.int32)
+        fleeing = seen.any(axis=1)
+        if self.prey_alertness < 1.0:  # drawn only then: the task's sheep play as they always did
+            fleeing &= self._rng.random(len(sheep)) < self.prey_alertness
+        return np.where(fleeing, flee.argmax(axis=1), wander).astype(np.int32)
 
 
 class TigerEnv(MagentEnv):
@@ -675,6 +697,18 @@ class MagentBatch:
     def _read_cells(self, b: int) -> None:
         for name, cell in self.envs[b].agent_cells().items():
             self.pos[b, self._names.index(name)] = cell
+
+    @property
+    def prey_alertness(self) -> float:
+        """Pursuit's :attr:`PursuitEnv.prey_alertness`, the same in every env of the batch."""
+        return self.envs[0].prey_alertness
+
+    @prey_alertness.setter
+    def prey_alertness(self, value: float) -> None:
+        if not hasattr(self.envs[0], "prey_alertness"):
+            raise EnvConfigError(f"{self.config.name} has no prey whose alertness could be set")
+        for env in self.envs:
+            env.prey_alertness = value
 
     def potential(self) -> np.ndarray:
         """Every slot's :meth:`MagentEnv.potential` (B, N); absent slots and episodes that are
