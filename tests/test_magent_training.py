@@ -373,27 +373,30 @@ def test_explore_sets_how_often_a_random_pursuit_wolf_moves(explore, move_share)
         assert kind.min() > 0.85 * kind.mean()
 
 
-def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(tmp_path):
+@pytest.mark.parametrize("shaping", [0.0, 0.5])
+def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(tmp_path, shaping):
     """Each rollout plays the alertness the schedule gives at its first step: 0 at the start,
     rising linearly to 1 at ``prey_curriculum`` of the run, then the task's sheep; the rollouts'
-    sheep really play it (the batch's envs are set before each rollout)."""
+    sheep really play it (every env of the batch is set before each rollout, shaped or not)."""
     cfg = TrainConfig(env="magent/pursuit", algo="iql", agents="3", map_size=16, max_steps=10,
                       obstacles="0", steps=400, prey_curriculum=0.5, checkpoint_every=1e9,
-                      out=str(tmp_path / "run"), **TINY)  # fmt: skip
+                      shaping=shaping, out=str(tmp_path / "run"), **TINY)  # fmt: skip
     played = []
     real = training_batch
 
     def spy(*args, **kwargs):
         env = real(*args, **kwargs)
-        play = env.step
-        env.step = lambda actions: (played.append(env.prey_alertness), play(actions))[1]
+        play, envs = env.step, env.envs
+        env.step = lambda actions: (played.append({e.prey_alertness for e in envs}), play(actions))[
+            1
+        ]
         return env
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr("udan.train.training_batch", spy)
         train(cfg, log=quiet)
     per_rollout = played[::10]  # 4 episodes of 10 steps: one rollout is 10 batch steps
-    assert per_rollout == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0])
+    assert per_rollout == [{a} for a in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)]
 
 
 @pytest.mark.parametrize(

@@ -334,6 +334,14 @@ class ShapedRewards:
     def __getattr__(self, name: str):
         return getattr(self.env, name)
 
+    @property
+    def prey_alertness(self) -> float:
+        return self.env.prey_alertness
+
+    @prey_alertness.setter
+    def prey_alertness(self, value: float) -> None:  # a curriculum sets the inner batch's sheep
+        self.env.prey_alertness = value
+
     def reset(self, where: np.ndarray | None = None) -> np.ndarray:
         obs = self.env.reset(where)
         self._phi = self.env.potential()
