@@ -220,12 +220,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--serial", default="UDAN-HIL", help="the camera's serial number")
     p.add_argument("--lost-ratio", type=float, default=0.0, help="stream packets dropped")
     p.add_argument("--delay-ms", type=float, default=0.0, help="hold frames this long")
-    p.add_argument(
-        "--delay-block-s",
-        type=float,
-        default=0.0,
-        help="hold frames in every other block of this many seconds",
-    )
+    p.add_argument("--delay-block-s", type=float, default=0.0,
+                   help="hold frames in every other block of this many seconds")  # fmt: skip
     p.add_argument("--max-lag-ms", type=float, default=math.inf,
                    help="a picture older than this keeps its own capture time")  # fmt: skip
     return p

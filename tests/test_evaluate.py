@@ -79,7 +79,8 @@ def test_surround_prints_the_target_table_too(capsys):
         (["/nonexistent/checkpoint.pt"], "does not exist"),
         (["--episodes", "0"], "--episodes"),
         (["--csv", "/proc/version/x.csv"], "cannot create folder"),
-        (["--env", "magent/tiger", "--prey-alertness", "0.5"], "unknown option(s) prey_alertness"),
+        (["--env", "magent/tiger", "--prey-alertness", "0.5"], "is for magent/pursuit, not"),
+        (["--prey-alertness", "0.5"], "is for magent/pursuit, not arena/find_water"),
         (["--env", "magent/pursuit", "--prey-alertness", "2"], "must lie in [0, 1]"),
     ],
 )

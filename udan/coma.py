@@ -139,8 +139,7 @@ def train_coma(cfg: TrainConfig, resume: bool = False, log: Callable = print) ->
     progress, rng = run.progress, run.rng
     while run.running:
         epsilon = run.epsilon()
-        if cfg.prey_curriculum:
-            env.prey_alertness = run.prey_alertness()
+        run.before_rollout(env)
         episodes = rollout(env, actor, epsilon, rng, with_state=True)
         # one more draw at the final observation: the action the last TD target bootstraps on
         final = actor.act(env.observe(), env.present, env.pos, env.joined, epsilon, rng)

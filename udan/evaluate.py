@@ -519,15 +519,15 @@ def main(argv: list[str] | None = None) -> int:
                 print(curves)
                 return 0
         sources, options, trained = load_sources(args)
-        if args.prey_alertness is not None:
-            options = {**options, "prey_alertness": args.prey_alertness}
         env_name = sources[0][1]
         arena = env_name.startswith("arena/")
-        if arena:
-            trained = "1-5"
-        elif trained is None:  # a reference policy alone: the scenario's own range
-            trained = make_vec(env_name, batch=1, **options).config.agents
-        agents = parse_range(args.agents or trained, "--agents")
+        if args.prey_alertness is not None:
+            if env_name != "magent/pursuit":
+                raise EnvConfigError(f"--prey-alertness is for magent/pursuit, not {env_name}")
+            options = {**options, "prey_alertness": args.prey_alertness}
+        if not arena and trained is None and not args.agents:  # a reference policy alone
+            trained = make_vec(env_name, batch=1, **options).config.agents  # the scenario's
+        agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
         obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
         make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
         if args.csv is not None and len(sources) > 1:
@@ -552,9 +552,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     reports = [curves] if curves else []  # markdown tables written to --out/report.md
     for label, results in tables.items():
+        sheep = "" if args.prey_alertness is None else f", sheep alertness {args.prey_alertness:g}"
         title = (
             f"{env_name}, {label}: average agent score "
-            f"({args.episodes} episodes per cell, seed {args.seed})"
+            f"({args.episodes} episodes per cell, seed {args.seed}{sheep})"
         )
         print(
             format_table(results, "agent_score", title)

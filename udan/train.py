@@ -374,10 +374,10 @@ def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
         )
     if not 0.0 <= cfg.prey_curriculum <= 1.0:
         raise EnvConfigError(f"--prey-curriculum must lie in [0, 1], got {cfg.prey_curriculum}")
-    if cfg.prey_curriculum and not hasattr(env, "prey_alertness"):
+    if cfg.prey_curriculum and cfg.env != "magent/pursuit":
         raise EnvConfigError(f"--prey-curriculum is for magent/pursuit, not {cfg.env}")
     if cfg.prey_curriculum and (cfg.workers or cfg.address):
-        raise EnvConfigError("--prey-curriculum trains in one process, not with --workers")
+        raise EnvConfigError("--prey-curriculum trains in one process: no --workers or --address")
     return ShapedRewards(env, cfg.shaping, cfg.gamma) if cfg.shaping else env
 
 
@@ -674,17 +674,25 @@ class Run:
         """Linear decay from eps_start to eps_end over eps_fraction of the run, at ``at_steps``
         (default: the steps played so far)."""
         cfg = self.cfg
-        steps = self.progress["steps"] if at_steps is None else at_steps
-        frac = min(steps / max(cfg.eps_fraction * cfg.steps, 1), 1.0)
+        frac = self._ramp(cfg.eps_fraction, at_steps)
         return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
     def prey_alertness(self) -> float:
         """The sheep's alertness for the next rollout: 1 (the task's) unless ``prey_curriculum``
         has it rise linearly from 0 over that fraction of the run."""
-        cfg = self.cfg
-        if not cfg.prey_curriculum:
-            return 1.0
-        return min(self.progress["steps"] / (cfg.prey_curriculum * cfg.steps), 1.0)
+        return self._ramp(self.cfg.prey_curriculum) if self.cfg.prey_curriculum else 1.0
+
+    def _ramp(self, fraction: float, at_steps: int | None = None) -> float:
+        """0 to 1, linearly over ``fraction`` of the run, at ``at_steps`` (default: the steps
+        played so far); 1 from there on."""
+        steps = self.progress["steps"] if at_steps is None else at_steps
+        return min(steps / max(fraction * self.cfg.steps, 1), 1.0)
+
+    def before_rollout(self, env: ArenaBatch) -> None:
+        """Set what the schedule gives the next rollout's task: pursuit's sheep, under a
+        ``prey_curriculum``."""
+        if self.cfg.prey_curriculum:
+            env.prey_alertness = self.prey_alertness()
 
     def record(
         self,
@@ -809,8 +817,7 @@ def train(cfg: TrainConfig, resume: bool = False, log=print) -> Path:
     actor = training_actor(cfg, model, env)
     while run.running:
         epsilon = run.epsilon()
-        if cfg.prey_curriculum:
-            env.prey_alertness = run.prey_alertness()
+        run.before_rollout(env)
         episodes = rollout(env, actor, epsilon, run.rng, with_state=model.spec.state_dim > 0)
         replay.add(episodes)
         losses = update_round(model, target, optim, replay, run)
