@@ -373,13 +373,22 @@ def test_explore_sets_how_often_a_random_pursuit_wolf_moves(explore, move_share)
         assert kind.min() > 0.85 * kind.mean()
 
 
-@pytest.mark.parametrize("shaping", [0.0, 0.5])
-def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(tmp_path, shaping):
-    """Each rollout plays the alertness the schedule gives at its first step: 0 at the start,
-    rising linearly to 1 at ``prey_curriculum`` of the run, then the task's sheep; the rollouts'
-    sheep really play it (every env of the batch is set before each rollout, shaped or not)."""
+@pytest.mark.parametrize(
+    ("span", "shaping", "alertness"),
+    [
+        ("0.5", 0.0, (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)),
+        ("0.5", 0.5, (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)),
+        ("0.3-0.7", 0.0, (0.0, 0.0, 0.0, 0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0)),
+    ],
+)
+def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(
+    tmp_path, span, shaping, alertness
+):
+    """Each rollout plays the alertness the schedule gives at its first step: 0 until START,
+    rising linearly to 1 at END, then the task's sheep; the rollouts' sheep really play it
+    (every env of the batch is set before each rollout, shaped or not)."""
     cfg = TrainConfig(env="magent/pursuit", algo="iql", agents="3", map_size=16, max_steps=10,
-                      obstacles="0", steps=400, prey_curriculum=0.5, checkpoint_every=1e9,
+                      obstacles="0", steps=400, prey_curriculum=span, checkpoint_every=1e9,
                       shaping=shaping, out=str(tmp_path / "run"), **TINY)  # fmt: skip
     played = []
     real = training_batch
@@ -396,7 +405,8 @@ def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(tmp_path, shap
         patch.setattr("udan.train.training_batch", spy)
         train(cfg, log=quiet)
     per_rollout = played[::10]  # 4 episodes of 10 steps: one rollout is 10 batch steps
-    assert per_rollout == [{a} for a in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)]
+    assert all(len(envs) == 1 for envs in per_rollout)  # every env of the batch alike
+    assert [envs.pop() for envs in per_rollout] == pytest.approx(alertness)
 
 
 @pytest.mark.parametrize(
@@ -405,7 +415,10 @@ def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(tmp_path, shap
         (["--env", "magent/chess"], "unknown env"),
         (["--env", "magent/tiger", "--prey-curriculum", "0.5"], "is for magent/pursuit"),
         (["--env", "arena/surround", "--prey-curriculum", "0.5"], "is for magent/pursuit"),
-        (["--env", "magent/pursuit", "--prey-curriculum", "2"], "must lie in [0, 1]"),
+        (["--env", "magent/pursuit", "--prey-curriculum", "2"], "0 <= START < END <= 1"),
+        (["--env", "magent/pursuit", "--prey-curriculum", "0.7-0.3"], "0 <= START < END <= 1"),
+        (["--env", "magent/pursuit", "--prey-curriculum", "soon"], "not 'soon'"),
+        (["--env", "magent/pursuit", "--prey-curriculum", "0.1-0.2-0.3"], "START-END"),
         (
             ["--env", "magent/pursuit", "--prey-curriculum", "0.5", "--workers", "2"],
             "no --workers or --address",

@@ -124,10 +124,11 @@ class TrainConfig:
     """MAgent tasks with opponents: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s))
     added to each agent's training reward, Φ its nearness to the closest opponent in view
     (policy-invariant; scores and the logged return are the task's own; 0: none)."""
-    prey_curriculum: float = 0.0
-    """MAgent pursuit: the sheep's alertness (the chance that a sheep seeing a wolf flees rather
-    than wanders; 1 in the task) rises from 0 to 1 over this fraction of training (0: the
-    task's sheep throughout; a curriculum, docs/algorithm.md)."""
+    prey_curriculum: str = ""
+    """MAgent pursuit: START-END, shares of training: the sheep's alertness (the chance that a
+    sheep seeing a wolf flees rather than wanders; 1 in the task) is 0 until START and rises
+    linearly to 1 at END (one number F: 0-F; empty: the task's sheep throughout; a
+    curriculum, docs/algorithm.md)."""
     leader_target: str = "signed"
     """UDAN: the leader classifier's target from ΔQ: signed (lead when messages raise the
     group's values) or minmax (the paper's eq. 9; runs older than this field used it)."""
@@ -356,6 +357,25 @@ class ShapedRewards:
         return obs, shaped.astype(np.float32), done
 
 
+def curriculum_span(text: str) -> tuple[float, float]:
+    """``--prey-curriculum``'s START-END as shares of training (``F`` alone: 0-F; empty: no
+    curriculum, (1, 1)); one-line refusal of anything else."""
+    if not str(text).strip():
+        return 1.0, 1.0
+    try:
+        parts = [float(p) for p in str(text).split("-")]
+    except ValueError:
+        parts = []
+    if len(parts) == 1:
+        parts = [0.0, *parts]
+    if len(parts) != 2 or not 0.0 <= parts[0] < parts[1] <= 1.0:
+        raise EnvConfigError(
+            f"--prey-curriculum takes START-END (or END), shares of training with "
+            f"0 <= START < END <= 1, not {text!r}"
+        )
+    return parts[0], parts[1]
+
+
 def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
     """The batch of ``cfg``'s task that rollouts play (shaped when ``cfg.shaping``)."""
     env = make_vec(
@@ -372,8 +392,7 @@ def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
         raise EnvConfigError(
             f"--shaping needs a task with opponents (magent/pursuit, magent/tiger), not {cfg.env}"
         )
-    if not 0.0 <= cfg.prey_curriculum <= 1.0:
-        raise EnvConfigError(f"--prey-curriculum must lie in [0, 1], got {cfg.prey_curriculum}")
+    curriculum_span(cfg.prey_curriculum)  # a bad span is refused here
     if cfg.prey_curriculum and cfg.env != "magent/pursuit":
         raise EnvConfigError(f"--prey-curriculum is for magent/pursuit, not {cfg.env}")
     if cfg.prey_curriculum and (cfg.workers or cfg.address):
@@ -674,19 +693,22 @@ class Run:
         """Linear decay from eps_start to eps_end over eps_fraction of the run, at ``at_steps``
         (default: the steps played so far)."""
         cfg = self.cfg
-        frac = self._ramp(cfg.eps_fraction, at_steps)
+        frac = self._ramp(0.0, cfg.eps_fraction, at_steps)
         return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
     def prey_alertness(self) -> float:
         """The sheep's alertness for the next rollout: 1 (the task's) unless ``prey_curriculum``
-        has it rise linearly from 0 over that fraction of the run."""
-        return self._ramp(self.cfg.prey_curriculum) if self.cfg.prey_curriculum else 1.0
+        holds it at 0 until its START and has it rise linearly to 1 at its END."""
+        if not self.cfg.prey_curriculum:
+            return 1.0
+        return self._ramp(*curriculum_span(self.cfg.prey_curriculum))
 
-    def _ramp(self, fraction: float, at_steps: int | None = None) -> float:
-        """0 to 1, linearly over ``fraction`` of the run, at ``at_steps`` (default: the steps
-        played so far); 1 from there on."""
+    def _ramp(self, start: float, end: float, at_steps: int | None = None) -> float:
+        """0 until ``start`` of the run, rising linearly to 1 at ``end``, at ``at_steps``
+        (default: the steps played so far); 1 from there on."""
         steps = self.progress["steps"] if at_steps is None else at_steps
-        return min(steps / max(fraction * self.cfg.steps, 1), 1.0)
+        total = self.cfg.steps
+        return min(max(steps - start * total, 0) / max((end - start) * total, 1), 1.0)
 
     def before_rollout(self, env: ArenaBatch) -> None:
         """Set what the schedule gives the next rollout's task: pursuit's sheep, under a
