@@ -115,3 +115,9 @@ def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "arena/surround, random" in out and "arena/surround, udan" in out
+    # several policies: each against the first, paired on the same episodes
+    assert "arena/surround: each policy against udan (r), paired on the same 2 episodes" in out
+    assert "| agents | udan (r) | random | Δ random [95 % CI] | Δ % |" in out
+    row = next(line for line in out.splitlines() if line.startswith("| 2 | "))
+    base, other, delta = (float(cell.split()[0]) for cell in row.split("|")[2:5])
+    assert delta == pytest.approx(other - base, abs=0.011)

@@ -199,13 +199,16 @@ def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
 
 
 def format_ablation(
-    full: list[CellResult], ablated: dict[str, list[CellResult]], title: str
+    full: list[CellResult], ablated: dict[str, list[CellResult]], title: str, base: str = "full"
 ) -> str:
     """Markdown table per agent count (cells of every obstacle count pooled by episode): the
-    full model's score, each ablation's, and the paired difference with its 95 % CI and as a
-    share of the full score. With more than one agent count, a last row pools every episode:
-    the communication criterion (a loss of >= 10 %, its CI excluding 0) is read there."""
-    head = "| agents | full | " + " | ".join(f"{m} | Δ {m} [95 % CI] | Δ %" for m in ablated) + " |"
+    ``base`` (the full model's) score, each ablation's (or other policy's), and the paired
+    difference with its 95 % CI and as a share of the base score. With more than one agent count,
+    a last row pools every episode: the communication criterion (a loss of >= 10 %, its CI
+    excluding 0) is read there."""
+    head = (
+        f"| agents | {base} | " + " | ".join(f"{m} | Δ {m} [95 % CI] | Δ %" for m in ablated) + " |"
+    )
     lines = [f"**{title}**", "", head, "|---" * (2 + 3 * len(ablated)) + "|"]
     counts = sorted({r.agents for r in full})
     rows = [(str(n), (n,)) for n in counts]
@@ -576,6 +579,15 @@ def main(argv: list[str] | None = None) -> int:
             write_csv(results, args.out / f"{_slug(label)}.csv")
             if arena:
                 plot_heatmap(results, title, args.out / f"{_slug(label)}.png")
+    if len(tables) > 1:
+        first, *others = tables
+        title = (
+            f"{env_name}: each policy against {first}, paired on the same {args.episodes} "
+            "episodes per cell"
+        )
+        reports.append(
+            format_ablation(tables[first], {o: tables[o] for o in others}, title, base=first)
+        )
     if ablated:
         label = sources[0][0]
         title = (
