@@ -5,7 +5,7 @@ retrained since has the digests of the code it was committed with (``hidden_goal
 evaluation here the two play the same episodes to the same scores, their exports differ;
 ``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
-``baselines/magent_pursuit_vdn``: at 9fa5f8f).
+``baselines/magent_pursuit_vdn`` and ``baselines/magent_pursuit_qmix``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -76,6 +76,10 @@ BEFORE = {
     "baselines/magent_pursuit_iql": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "cba476b48fe0a9e5705e9412b08678f9d6e05fbb8d0c369577057218134352c7",
+    ),
+    "baselines/magent_pursuit_qmix": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "fa40fa54fb97d6a79a5879ac0dae2c97ff376bb86911bfc0e6067aa0d673c411",
     ),
     "baselines/magent_pursuit_vdn": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
