@@ -5,7 +5,8 @@ retrained since has the digests of the code it was committed with (``hidden_goal
 evaluation here the two play the same episodes to the same scores, their exports differ;
 ``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
-``baselines/magent_pursuit_vdn`` and ``baselines/magent_pursuit_qmix``: at 9fa5f8f).
+``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix`` and
+``baselines/magent_tiger_vdn``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -84,6 +85,10 @@ BEFORE = {
     "baselines/magent_pursuit_vdn": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "d640a65ab3f9a3c467c224434f313a984024043a070f64f809901cdcd1a0a329",
+    ),
+    "baselines/magent_tiger_vdn": (
+        "3d1b2ef86d0e05f0a91e5e906cb901ef6cf405fbbffac174286337937e2878ff",
+        "c346346e33e6a67e4cf8a6bfc17041b2e9ef82ba1b70903b4f5bbb3b31920275",
     ),
     "baselines/surround_coma": (
         "1982f63619f7bef84e61ce0f974f29795ae139239308a56f969c0b5e99cd8926",
