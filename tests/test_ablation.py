@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from udan.envs import make_vec
-from udan.evaluate import Z95, CellResult, format_ablation
+from udan.evaluate import Z95, CellResult, format_paired
 from udan.leaders import collect, format_leaders, row
 from udan.learner import Actor, ModelSpec, MultiAgentQ
 from udan.probe import ridge_fit, ridge_r2
@@ -165,7 +165,7 @@ def test_ablation_table_pairs_episodes_per_n_and_pools_every_n_in_its_last_row()
 
     full = cells({2: [4.0, 6.0, 8.0], 3: [2.0, 2.0, 2.0]})
     shuffled = cells({2: [3.0, 5.0, 7.0], 3: [1.0, 1.0, 3.4]})  # pooled: -1 five times, +1.4 once
-    table = format_ablation(full, {"messages=shuffle": shuffled}, "t")
+    table = format_paired(full, {"messages=shuffle": shuffled}, "t")
     assert "| 2 | 6.00 | 5.00 | -1.00 [-1.00, -1.00] | -17 % |" in table
     pooled = -3.6 / 6
     half = Z95 * np.std([-1, -1, -1, -1, -1, 1.4], ddof=1) / np.sqrt(6)
@@ -173,13 +173,13 @@ def test_ablation_table_pairs_episodes_per_n_and_pools_every_n_in_its_last_row()
         f"| 2-3 pooled | 4.00 | 3.40 | {pooled:+.2f} [{pooled - half:+.2f}, {pooled + half:+.2f}]"
         " | -15 % |"
     )
-    single = format_ablation(full[:1], {"messages=shuffle": shuffled[:1]}, "t")
+    single = format_paired(full[:1], {"messages=shuffle": shuffled[:1]}, "t")
     assert "pooled" not in single
     nothing = cells({2: [0.0, 0.0]})
-    assert "| 2 | 0.00 | 0.00 | +0.00 [+0.00, +0.00] | — |" in format_ablation(
+    assert "| 2 | 0.00 | 0.00 | +0.00 [+0.00, +0.00] | — |" in format_paired(
         nothing, {"groups": nothing}, "t"
     )
-    losing = format_ablation(cells({2: [-4.0, -2.0]}), {"groups": cells({2: [-5.0, -3.0]})}, "t")
+    losing = format_paired(cells({2: [-4.0, -2.0]}), {"groups": cells({2: [-5.0, -3.0]})}, "t")
     assert "| 2 | -3.00 | -4.00 | -1.00 [-1.00, -1.00] | -33 % |" in losing  # a loss stays a loss
 
 

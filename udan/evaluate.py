@@ -198,7 +198,7 @@ def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
     return np.concatenate([r.scores for r in results if r.agents == agents])
 
 
-def format_ablation(
+def format_paired(
     full: list[CellResult], ablated: dict[str, list[CellResult]], title: str, base: str = "full"
 ) -> str:
     """Markdown table per agent count (cells of every obstacle count pooled by episode): the
@@ -586,14 +586,14 @@ def main(argv: list[str] | None = None) -> int:
             "episodes per cell"
         )
         reports.append(
-            format_ablation(tables[first], {o: tables[o] for o in others}, title, base=first)
+            format_paired(tables[first], {o: tables[o] for o in others}, title, base=first)
         )
     if ablated:
         label = sources[0][0]
         title = (
             f"{env_name}, {label}: ablations, paired on the same {args.episodes} episodes per cell"
         )
-        reports.append(format_ablation(tables[label], ablated, title))
+        reports.append(format_paired(tables[label], ablated, title))
     if probes:
         reports.append(
             format_probe(probes, f"{env_name}, {sources[0][0]}: linear probe of the goal's cell")

@@ -32,7 +32,7 @@ from udan.evaluate import (
     CellResult,
     CheckpointPolicy,
     evaluate,
-    format_ablation,
+    format_paired,
     learning_curves,
     mean_ci,
     pooled_scores,
@@ -376,7 +376,7 @@ def _shuffle_table(
     """What shuffled messages cost ``udan``, paired on the episodes of its ``full`` results."""
     shuffled = _play(udan, env, agents, obstacles, settings, "messages=shuffle", episodes)
     title = f"{name}: UDAN with shuffled messages, paired on the same episodes"
-    return format_ablation(full, {"messages=shuffle": shuffled}, title)
+    return format_paired(full, {"messages=shuffle": shuffled}, title)
 
 
 def _curves(models: Path, entries, png: Path | None) -> str | None:
