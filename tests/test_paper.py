@@ -123,9 +123,12 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     assert "| 1-3 | 1-3 |" in row and NOT_TRAINED not in row
     assert "curves only (Fig. 5)" in row
     assert "| magent_queue |" in text and (tmp_path / "results" / "fig5_curves.png").is_file()
-    chaser = next(line for line in text.splitlines() if line.startswith("| pursuit | scripted"))
-    assert re.search(r"\| 2-3 \| -?\d+\.\d\d \[", chaser), chaser
-    assert not any(line.startswith("| queue | scripted") for line in text.splitlines())
+    for scenario, tested in (("pursuit", "2-3"), ("queue", "1-3")):
+        scripted = next(
+            line for line in text.splitlines() if line.startswith(f"| {scenario} | scripted")
+        )  # on the UDAN's sizes and task options
+        assert re.search(rf"\| {tested} \| -?\d+\.\d\d \[", scripted), scripted
+    assert not any(line.startswith("| tiger | scripted") for line in text.splitlines())
     for scenario, trained in (("queue", "1-3"), ("pursuit", "2-3")):
         shuffle = text.index(f"**{scenario}: UDAN with shuffled messages, paired")
         assert f"| {trained} pooled |" in text[shuffle:].split("\n\n", 2)[1]

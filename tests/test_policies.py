@@ -7,7 +7,14 @@ import pytest
 
 from udan.envs import make_vec
 from udan.envs.rules import ACTION_DELTAS, FREE, WAIT, WATER
-from udan.policies import ChaserPolicy, OraclePolicy, RandomPolicy, assign, distance_field
+from udan.policies import (
+    ChaserPolicy,
+    LinerPolicy,
+    OraclePolicy,
+    RandomPolicy,
+    assign,
+    distance_field,
+)
 
 
 def play(env, policy):
@@ -108,3 +115,35 @@ def test_the_chaser_scores_where_random_wolves_only_pay_for_attacks():
     assert score(ChaserPolicy()) > 5 > 0 > score(RandomPolicy())
     with pytest.raises(ValueError, match="pursuit, tiger"):
         evaluate("magent/queue", ChaserPolicy(), (3, 3), (0, 0), 1, 0, {"map_size": 10})
+
+
+@pytest.mark.magent
+def test_the_liner_steps_west_falls_south_at_the_wall_and_goes_round_a_taken_cell():
+    from udan.envs.magent import make, move_offsets
+
+    env = make("magent/queue", agents=5, map_size=12, seed=0)
+    bottom = 10  # the row above the south wall
+    layout = {"agents": [(6, 4), (1, 3), (1, bottom), (2, bottom), (1, bottom - 1)], "walls": []}
+    env.reset(options={"layout": layout})
+    got = LinerPolicy().act_in(env)
+    moves = move_offsets(env.agent_attrs["speed"]).tolist()
+    assert moves[got["agent_0"]] == [-1, 0]  # west is free
+    assert moves[got["agent_1"]] == [0, 1]  # at the west wall, falls south
+    assert got["agent_2"] == env.stay_action  # bottom of the stack
+    assert moves[got["agent_3"]] == [0, -1]  # west taken: north, round the stack
+    assert got["agent_4"] == env.stay_action  # on the stack
+
+
+@pytest.mark.magent
+def test_the_liner_lines_up_every_episode_where_random_agents_never_do():
+    from udan.evaluate import evaluate
+
+    def scores(policy, agents):
+        cells = evaluate("magent/queue", policy, agents, (0, 0), 3, 0)
+        return np.concatenate([c.scores for c in cells])
+
+    lined = scores(LinerPolicy(), (8, 20))  # the paper's map 30 and 300 steps
+    assert (lined > -0.2 * 100).all(), lined  # +1 for the line within 100 steps, every episode
+    assert np.allclose(scores(RandomPolicy(), (8, 9)), -60.0)  # 300 steps at -0.2, no line
+    with pytest.raises(ValueError, match="queue"):
+        evaluate("magent/pursuit", LinerPolicy(), (3, 3), (0, 0), 1, 0, {"map_size": 10})

@@ -280,6 +280,7 @@ def load_sources(
         plays = {  # policy -> (task name prefixes it plays, how to say them)
             "oracle": (("arena/",), "arena tasks"),
             "chaser": (("magent/pursuit", "magent/tiger"), "magent/pursuit and magent/tiger"),
+            "liner": (("magent/queue",), "magent/queue"),
         }
         prefixes, said = plays.get(args.policy, (("arena/", "magent/"), "every task"))
         if not env_name.startswith(prefixes):

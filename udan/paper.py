@@ -38,7 +38,7 @@ from udan.evaluate import (
     pooled_scores,
 )
 from udan.paths import FolderError, ensure_folder
-from udan.policies import ChaserPolicy
+from udan.policies import POLICIES
 
 # ------------------------------------------------------------------ the paper's numbers
 #: Table V, upper half: average agent score, rows obstacles ("Wall nums") 0-9, columns N = 1-4.
@@ -138,9 +138,13 @@ MAGENT = {
     )
     for scenario in ("pursuit", "tiger", "queue")
 }
-#: Scenarios with a scripted reference row (``udan-eval --policy chaser``) beside their UDAN.
-CHASED = ("pursuit", "tiger")
-CHASER = "scripted chaser (no learning, no messages)"
+#: Each scenario's scripted reference row beside its UDAN (``udan-eval --policy NAME``): policy
+#: and label.
+SCRIPTED = {
+    "pursuit": ("chaser", "scripted chaser (no learning, no messages)"),
+    "tiger": ("chaser", "scripted chaser (no learning, no messages)"),
+    "queue": ("liner", "scripted liner (no learning, no messages)"),
+}
 #: Every folder udan-paper reads a model from.
 FOLDERS = tuple(
     entry[1] for entries in (FIG7, FIG8, CONTROL, *MAGENT.values()) for entry in entries
@@ -572,10 +576,11 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                     udan, results, env, agents, (0, 0), settings, scenario, settings.magent_episodes
                 )
                 shuffles += ["", shuffle]
-        if udan is not None and scenario in CHASED:
+        if udan is not None:
+            policy, label = SCRIPTED[scenario]
             results = evaluate(
                 f"magent/{scenario}",
-                ChaserPolicy(settings.seed),
+                POLICIES[policy](settings.seed),
                 parse_range(udan.trained_agents, "agents"),
                 (0, 0),
                 settings.magent_episodes,
@@ -583,7 +588,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 udan.options(),
             )
             out.append(
-                f"| {scenario} | {CHASER} | — | {udan.trained_agents} | {_pooled(results)} | — |"
+                f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
         curves += [e for e in entries if loaded[e[0]] is not None]
     table = _curves(settings.models, curves, settings.figures / "fig5_curves.png")

@@ -1,5 +1,5 @@
-"""Reference policies: the floor (``random``, every task), the arena's ceiling (``oracle``) and
-MAgent pursuit's scripted reference (``chaser``, below).
+"""Reference policies: the floor (``random``, every task), the arena's ceiling (``oracle``), and
+MAgent's scripted references: ``chaser`` (pursuit, tiger) and ``liner`` (queue), below.
 
 The oracle is a centralised planner with the whole map, obeying the same world rules:
 
@@ -322,20 +322,12 @@ class ChaserPolicy:
         if not getattr(env, "has_opponents", False):
             raise ValueError("the chaser plays MAgent tasks with opponents (pursuit, tiger)")
         assert self._heading is not None, "reset first"
-        actions = np.full((env.batch, env.slots), env.envs[0].stay_action, dtype=np.int64)
-        for b, world in enumerate(env.envs):
-            if not env.over[b]:
-                for name, action in self.act_in(world, self._heading[b]).items():
-                    actions[b, world.possible_agents.index(name)] = action  # slot i: agent_i
-        return actions
+        return _per_world(env, lambda b, world: self.act_in(world, self._heading[b]))
 
     def act_in(self, world, heading: np.ndarray) -> dict[str, int]:
         """Actions of one MAgent env's agents by name; ``heading`` (by slot) is kept in place."""
-        from udan.envs.magent import move_offsets  # MAgent2 is the [train] extra's
-
         view, reach = float(world.agent_attrs["view"]), float(world.agent_attrs["attack"])
-        moves = move_offsets(world.agent_attrs["speed"])
-        steps = [int(np.flatnonzero((moves == d).all(1))[0]) for d in _STEPS]
+        steps = _unit_moves(world)
         agents, opponents = world.positions()
         taken = {tuple(c) for c in agents.tolist()} | {tuple(c) for c in opponents.tolist()}
         out = {}
@@ -362,7 +354,75 @@ class ChaserPolicy:
         return out
 
 
-#: The four unit moves of a speed-1 MAgent agent, as ``(dx, dy)``.
+class LinerPolicy:
+    """MAgent queue, scripted and decentralised: each agent reads its own cell (its observation
+    carries it) and the four cells beside it, and no messages pass.
+
+    An agent steps west while it can; at the west wall it steps south until the cell below is
+    taken, so the agents stack up from the south-west corner into one contiguous column, which is
+    the queue's line. An agent whose west cell another agent holds steps north (the stack's open
+    end), or waits. A reference for what the task gives without learning or communication, not
+    an optimum; it assumes no walls inside the map (the task's default).
+    """
+
+    def __init__(self, seed: int | None = 0) -> None:
+        del seed  # deterministic; the argument keeps the policies' one constructor
+
+    def reset(self, env) -> None:
+        """Nothing to plan."""
+
+    def act(self, env) -> np.ndarray:
+        if getattr(env, "has_opponents", True):
+            raise ValueError("the liner plays MAgent queue (agents without opponents)")
+        return _per_world(env, lambda b, world: self.act_in(world))
+
+    def act_in(self, world) -> dict[str, int]:
+        """Actions of one MAgent env's agents by name."""
+        north, west, _, south = _unit_moves(world)
+        agents, _ = world.positions()
+        taken = {tuple(c) for c in agents.tolist()}
+
+        def free(cell: np.ndarray, dx: int, dy: int) -> bool:
+            there = (int(cell[0]) + dx, int(cell[1]) + dy)
+            return there not in taken and not world.walls[there]
+
+        out = {}
+        for name, cell in world.agent_cells().items():
+            if free(cell, -1, 0):
+                out[name] = west
+            elif world.walls[int(cell[0]) - 1, int(cell[1])]:
+                out[name] = south if free(cell, 0, 1) else world.stay_action
+            else:
+                out[name] = north if free(cell, 0, -1) else world.stay_action
+        return out
+
+
+def _per_world(env, act_in) -> np.ndarray:
+    """Every slot's action in a MAgent batch from ``act_in(b, world) -> {agent name: action}``;
+    slots without an agent (and worlds whose episode is over) stay."""
+    actions = np.full((env.batch, env.slots), env.envs[0].stay_action, dtype=np.int64)
+    for b, world in enumerate(env.envs):
+        if not env.over[b]:
+            for name, action in act_in(b, world).items():
+                actions[b, world.possible_agents.index(name)] = action  # slot i: agent_i
+    return actions
+
+
+#: The four unit moves of a speed-1 MAgent agent, as ``(dx, dy)``: north, west, east, south.
 _STEPS = [(0, -1), (-1, 0), (1, 0), (0, 1)]
 
-POLICIES = {"random": RandomPolicy, "oracle": OraclePolicy, "chaser": ChaserPolicy}
+
+def _unit_moves(world) -> list[int]:
+    """The action numbers of ``_STEPS`` for the agents of one MAgent env."""
+    from udan.envs.magent import move_offsets  # MAgent2 is the [train] extra's
+
+    moves = move_offsets(world.agent_attrs["speed"])
+    return [int(np.flatnonzero((moves == d).all(1))[0]) for d in _STEPS]
+
+
+POLICIES = {
+    "random": RandomPolicy,
+    "oracle": OraclePolicy,
+    "chaser": ChaserPolicy,
+    "liner": LinerPolicy,
+}
