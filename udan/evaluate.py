@@ -488,7 +488,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--leaders",
         action="store_true",
-        help="UDAN: who leads against what the messages would change (udan.leaders)",
+        help="UDAN: who leads against what the messages would change, and the groups each agent "
+        "is in and how far its message reaches (udan.leaders)",
     )
     parser.add_argument(
         "--workers",

@@ -6,6 +6,12 @@ messages change in its members' values). The table says how many agents lead, ho
 the messages would help (ΔQ > 0), how many the paper's min-max target would call leaders
 (above 0.5 after min-max scaling over the same candidates), and whether ``p`` follows ΔQ: the
 evidence for the leader-selection finding in docs/algorithm.md.
+
+A group is always its leader and the ``k - 1`` nearest agents (``min(k, N)`` of them), so what
+the leaders' choice changes is how the groups tie the fleet together: a second table counts the
+groups each agent is in at the same formations (none: it hears nothing; two or more: it bridges
+them) and the agents joined to it through shared groups, the most its message can reach in one
+step.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import torch
 
 from udan.envs import EnvConfigError, make_vec
 
+TIES = ("in no group", "in 1 group", "in 2", "in 3 or more", "mean reach", "largest reach")
 COLUMNS = (
     "leading",
     "ΔQ > 0",
@@ -36,6 +43,8 @@ class LeaderRow:
     candidates: int
     """Agent-steps scored (present agents at group formations with a group of 2 or more)."""
     values: dict[str, float]
+    ties: dict[str, float]
+    """:data:`TIES`: shares of the present agent-steps at formations, and reach in agents."""
 
 
 def check_leaders(spec) -> None:
@@ -44,11 +53,29 @@ def check_leaders(spec) -> None:
         raise EnvConfigError(f"--leaders: this {spec.algo} checkpoint has no leaders")
 
 
+def group_ties(groups: np.ndarray, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per present agent (slot order): how many of ``groups`` it is in, and its reach: the
+    agents joined to it through shared groups, itself included."""
+    from udan.envs.grouping import communication_matrix
+
+    n = len(present)
+    reach = (communication_matrix(groups, n) | np.eye(n, dtype=bool)).astype(np.int64)
+    while True:  # transitive closure: at most log2(N) squarings
+        wider = (reach @ reach > 0).astype(np.int64)
+        if (wider == reach).all():
+            break
+        reach = wider
+    slots = np.flatnonzero(present)
+    counts = np.bincount(groups.ravel(), minlength=n)
+    return counts[slots], reach[np.ix_(slots, slots)].sum(axis=1)
+
+
 def collect(
     model, env_name: str, agents: int, obstacles, episodes: int, seed: int, **options
-) -> tuple[np.ndarray, np.ndarray]:
-    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes
-    (``options``: the task options the model was trained with)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes, and
+    (groups it is in, reach) of every present agent at the same formations, from the groups the
+    actor formed (``options``: the task options the model was trained with)."""
     from udan.envs.grouping import neighbour_tables
     from udan.learner import Actor, hypothetical_delta_q, neighbour_rows
 
@@ -59,7 +86,7 @@ def collect(
     )
     obs = env.reset()
     actor = Actor(model, env.batch, env.slots)
-    probs, deltas = [], []
+    probs, deltas, counts, reaches = [], [], [], []
     done = np.zeros(env.batch, dtype=bool)
     step = 0
     while not done.all():
@@ -75,13 +102,24 @@ def collect(
                 logits = model.leader(feats, neighbour_rows(tables))[rows]
             probs.append(torch.sigmoid(logits).numpy())
             deltas.append(delta.numpy())
+            for b in range(env.batch):
+                count, reach = group_ties(actor.groups[b], present[b])
+                counts.append(count)
+                reaches.append(reach)
         obs, _, done = env.step(actions)
         step += 1
-    return np.concatenate(probs), np.concatenate(deltas)
+    return tuple(np.concatenate(x) for x in (probs, deltas, counts, reaches))
 
 
-def row(agents: int, prob: np.ndarray, delta: np.ndarray, threshold: float) -> LeaderRow:
-    """The statistics of one fleet size's candidates."""
+def row(
+    agents: int,
+    prob: np.ndarray,
+    delta: np.ndarray,
+    threshold: float,
+    counts: np.ndarray,
+    reach: np.ndarray,
+) -> LeaderRow:
+    """The statistics of one fleet size's candidates, and of its agents' group ties."""
     from udan.learner import leader_targets
 
     lead = prob > threshold
@@ -96,7 +134,15 @@ def row(agents: int, prob: np.ndarray, delta: np.ndarray, threshold: float) -> L
         "mean ΔQ of others": float(delta[~lead].mean()) if (~lead).any() else float("nan"),
         "corr(p, ΔQ)": float(np.corrcoef(prob, delta)[0, 1]) if varied else float("nan"),
     }
-    return LeaderRow(agents, len(delta), values)
+    ties = {
+        "in no group": float((counts == 0).mean()),
+        "in 1 group": float((counts == 1).mean()),
+        "in 2": float((counts == 2).mean()),
+        "in 3 or more": float((counts >= 3).mean()),
+        "mean reach": float(reach.mean()),
+        "largest reach": float(reach.max()),
+    }
+    return LeaderRow(agents, len(delta), values, ties)
 
 
 def leader_table(
@@ -111,9 +157,11 @@ def leader_table(
     """One :class:`LeaderRow` per fleet size (obstacles drawn per episode from ``obstacles``)."""
     table = []
     for n in range(agents[0], agents[1] + 1):
-        prob, delta = collect(model, env_name, n, obstacles, episodes, seed, **options)
+        prob, delta, counts, reach = collect(
+            model, env_name, n, obstacles, episodes, seed, **options
+        )
         if len(delta):
-            table.append(row(n, prob, delta, model.spec.leader_threshold))
+            table.append(row(n, prob, delta, model.spec.leader_threshold, counts, reach))
     return table
 
 
@@ -135,4 +183,16 @@ def format_leaders(table: list[LeaderRow], title: str) -> str:
             for c in COLUMNS
         ]
         lines.append(f"| {r.agents} | {r.candidates} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "**The groups each agent is in at the same formations, and its reach** (agents joined to"
+        " it through shared groups, itself included: the most its message reaches in a step)",
+        "",
+        "| agents | " + " | ".join(TIES) + " |",
+        "|---" * (len(TIES) + 1) + "|",
+    ]
+    for r in table:
+        shares = [f"{100 * r.ties[c]:.1f} %" for c in TIES[:4]]
+        reach = [f"{r.ties['mean reach']:.1f}", f"{r.ties['largest reach']:.0f}"]
+        lines.append(f"| {r.agents} | " + " | ".join(shares + reach) + " |")
     return "\n".join(lines)
