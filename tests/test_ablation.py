@@ -186,8 +186,8 @@ def test_ablation_table_pairs_episodes_per_n_and_pools_every_n_in_its_last_row()
 def test_leader_row_counts_leaders_gains_and_the_min_max_midpoint():
     prob = np.array([0.9, 0.8, 0.2, 0.1, 0.6])
     delta = np.array([0.5, 0.1, 0.05, -0.2, -1.0])  # one large loss moves min-max's midpoint
-    counts, reach = np.array([0, 1, 2, 3, 1]), np.array([1, 3, 5, 5, 3])
-    r = row(3, prob, delta, 0.5, counts, reach)
+    ties = np.array([[0, 1, 5], [1, 3, 5], [2, 5, 5], [3, 5, 5], [1, 3, 5]])  # groups, reach, N
+    r = row(3, prob, delta, 0.5, ties)
     assert r.candidates == 5
     assert r.values["leading"] == pytest.approx(0.6)
     assert r.values["ΔQ > 0"] == pytest.approx(0.6)
@@ -196,45 +196,51 @@ def test_leader_row_counts_leaders_gains_and_the_min_max_midpoint():
     assert r.values["mean ΔQ of others"] == pytest.approx((0.05 - 0.2) / 2)
     assert r.ties == {
         "in no group": 0.2,
-        "in 1 group": 0.4,
+        "in 1": 0.4,
         "in 2": 0.2,
         "in 3 or more": 0.2,
         "mean reach": pytest.approx(3.4),
-        "largest reach": 5.0,
+        "reach: whole fleet": 0.4,
     }
-    everyone = row(3, np.ones(5), delta, 0.5, counts, reach)
+    everyone = row(3, np.ones(5), delta, 0.5, ties)
     assert np.isnan(everyone.values["mean ΔQ of others"])
     text = format_leaders([everyone], "t")
     assert "| 3 | 5 | 100.0 % | 60.0 % | 80.0 % |" in text
-    assert "| 3 | 20.0 % | 40.0 % | 20.0 % | 20.0 % | 3.4 | 5 |" in text
+    assert "| 3 | 20.0 % | 40.0 % | 20.0 % | 20.0 % | 3.4 | 40.0 % |" in text
 
 
-def test_group_ties_count_memberships_and_reach_through_bridges():
+def test_group_ties_count_distinct_groups_and_reach_through_bridges():
     present = np.array([True, True, True, True, True, False, True])
-    groups = np.array([[0, 1], [1, 2], [3, 4]])  # 1 bridges the first two groups; 6 is alone
-    counts, reach = group_ties(groups, present)
+    groups = np.array([[0, 1], [1, 2], [3, 4], [4, 3]])  # 1 bridges two; [4, 3] is [3, 4] again
+    counts, reach, fleet = group_ties(groups, present).T
     assert counts.tolist() == [1, 2, 1, 1, 1, 0]  # slots 0-4 and 6, in slot order
-    assert reach.tolist() == [3, 3, 3, 2, 2, 1]
-    counts, reach = group_ties(np.zeros((0, 3), np.int64), present)
+    assert reach.tolist() == [3, 3, 3, 2, 2, 1] and fleet.tolist() == [6] * 6
+    chain = group_ties(np.array([[0, 1], [1, 2], [2, 3]]), np.ones(4, bool))
+    assert chain[:, 1].tolist() == [4, 4, 4, 4]  # two bridges deep: reach needs the closure
+    counts, reach, _ = group_ties(np.zeros((0, 3), np.int64), present).T
     assert counts.tolist() == [0] * 6 and reach.tolist() == [1] * 6
 
 
 def test_leader_table_sees_the_leaders_the_actor_forms_groups_with(plain_and_model):
     _, model = plain_and_model
-    prob, delta, counts, reach = collect(model, "arena/hidden_goal", AGENTS, 0, BATCH, seed=4)
-    # hidden_goal lasts 20 steps, groups form every 5: 4 formations of BATCH arenas of AGENTS
+    prob, delta, ties = collect(model, "arena/hidden_goal", AGENTS, 0, BATCH, seed=4)
+    # hidden_goal lasts 20 steps, groups form every 5: 4 formations of BATCH arenas of AGENTS,
+    # every one present, and (N > k) every one a candidate leader
     formations = -(-20 // model.spec.group_interval)
-    assert len(prob) == len(delta) == len(counts) == len(reach) == formations * BATCH * AGENTS
+    assert len(prob) == len(delta) == formations * BATCH * AGENTS
+    assert len(ties) == formations * BATCH * AGENTS
     env = make_vec("arena/hidden_goal", batch=BATCH, seed=4, agents=AGENTS, obstacles=0)
     obs, actor, leaders, members = env.reset(), Actor(model, BATCH, AGENTS), 0, 0
     for step in range(20):
         actions = actor.act(obs, env.present, env.pos, env.joined)
         if step % model.spec.group_interval == 0:
             leaders += sum(len(g) for g in actor.groups)
-            members += sum(g.size for g in actor.groups)
+            members += sum(np.unique(np.sort(g, axis=1), axis=0).size for g in actor.groups)
         obs, _, _ = env.step(actions)
     assert int((prob > model.spec.leader_threshold).sum()) == leaders
-    assert int(counts.sum()) == members and (reach >= 1).all() and (reach <= AGENTS).all()
+    counts, reach, fleet = ties.T
+    assert int(counts.sum()) == members and (reach >= 1).all() and (fleet == AGENTS).all()
+    assert (reach <= AGENTS).all()
     assert np.isfinite(delta).all() and delta.std() > 0
 
 

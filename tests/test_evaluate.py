@@ -77,6 +77,7 @@ def test_surround_prints_the_target_table_too(capsys):
         (["--policy", "chaser", "--env", "magent/queue"], "magent/tiger, not magent/queue"),
         (["--policy", "chaser"], "plays magent/pursuit and magent/tiger, not arena/find_water"),
         (["--policy", "liner", "--env", "magent/tiger"], "plays magent/queue, not magent/tiger"),
+        (["--policy", "liner", "--env", "magent/queue", "--obstacles", "3"], "--obstacles 0"),
         (["/nonexistent/checkpoint.pt"], "does not exist"),
         (["--episodes", "0"], "--episodes"),
         (["--csv", "/proc/version/x.csv"], "cannot create folder"),

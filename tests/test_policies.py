@@ -147,3 +147,5 @@ def test_the_liner_lines_up_every_episode_where_random_agents_never_do():
     assert np.allclose(scores(RandomPolicy(), (8, 9)), -60.0)  # 300 steps at -0.2, no line
     with pytest.raises(ValueError, match="queue"):
         evaluate("magent/pursuit", LinerPolicy(), (3, 3), (0, 0), 1, 0, {"map_size": 10})
+    with pytest.raises(ValueError, match="inner walls"):
+        evaluate("magent/queue", LinerPolicy(), (3, 3), (2, 2), 1, 0, {"map_size": 10})

@@ -535,6 +535,8 @@ def main(argv: list[str] | None = None) -> int:
         agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
         obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
         make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
+        if args.policy == "liner" and obstacles != (0, 0):
+            raise EnvConfigError("--policy liner lines up along a wall: it needs --obstacles 0")
         if args.csv is not None and len(sources) > 1:
             raise EnvConfigError("--csv takes one source; use --out for several")
         probed = _probed_model(args, sources)

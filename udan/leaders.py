@@ -9,9 +9,10 @@ evidence for the leader-selection finding in docs/algorithm.md.
 
 A group is always its leader and the ``k - 1`` nearest agents (``min(k, N)`` of them), so what
 the leaders' choice changes is how the groups tie the fleet together: a second table counts the
-groups each agent is in at the same formations (none: it hears nothing; two or more: it bridges
-them) and the agents joined to it through shared groups, the most its message can reach in one
-step.
+distinct groups (member sets) each agent is in at the same formations (none: it hears nothing;
+two or more: it bridges them) and its reach, the agents joined to it through shared groups (the
+most its message can reach in one step). Two leaders with the same nearest agents make one
+distinct group, so at N <= k every group is the whole fleet: one group, no bridge.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 
 from udan.envs import EnvConfigError, make_vec
 
-TIES = ("in no group", "in 1 group", "in 2", "in 3 or more", "mean reach", "largest reach")
+TIES = ("in no group", "in 1", "in 2", "in 3 or more", "mean reach", "reach: whole fleet")
 COLUMNS = (
     "leading",
     "ΔQ > 0",
@@ -44,7 +45,7 @@ class LeaderRow:
     """Agent-steps scored (present agents at group formations with a group of 2 or more)."""
     values: dict[str, float]
     ties: dict[str, float]
-    """:data:`TIES`: shares of the present agent-steps at formations, and reach in agents."""
+    """:data:`TIES`: shares of the present agent-steps at formations; mean reach in agents."""
 
 
 def check_leaders(spec) -> None:
@@ -53,12 +54,14 @@ def check_leaders(spec) -> None:
         raise EnvConfigError(f"--leaders: this {spec.algo} checkpoint has no leaders")
 
 
-def group_ties(groups: np.ndarray, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per present agent (slot order): how many of ``groups`` it is in, and its reach: the
-    agents joined to it through shared groups, itself included."""
+def group_ties(groups: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """Per present agent (slot order), a row of: how many distinct member sets of ``groups`` it
+    is in, its reach (the agents joined to it through shared groups, itself included) and the
+    number of agents present."""
     from udan.envs.grouping import communication_matrix
 
     n = len(present)
+    groups = np.unique(np.sort(groups, axis=1), axis=0)
     reach = (communication_matrix(groups, n) | np.eye(n, dtype=bool)).astype(np.int64)
     while True:  # transitive closure: at most log2(N) squarings
         wider = (reach @ reach > 0).astype(np.int64)
@@ -66,15 +69,15 @@ def group_ties(groups: np.ndarray, present: np.ndarray) -> tuple[np.ndarray, np.
             break
         reach = wider
     slots = np.flatnonzero(present)
-    counts = np.bincount(groups.ravel(), minlength=n)
-    return counts[slots], reach[np.ix_(slots, slots)].sum(axis=1)
+    counts = np.bincount(groups.ravel(), minlength=n)[slots]
+    return np.c_[counts, reach[np.ix_(slots, slots)].sum(axis=1), np.full_like(counts, slots.size)]
 
 
 def collect(
     model, env_name: str, agents: int, obstacles, episodes: int, seed: int, **options
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes, and
-    (groups it is in, reach) of every present agent at the same formations, from the groups the
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(p, ΔQ) of every candidate leader at every group formation of greedy episodes, and the
+    :func:`group_ties` rows of every present agent at the same formations, from the groups the
     actor formed (``options``: the task options the model was trained with)."""
     from udan.envs.grouping import neighbour_tables
     from udan.learner import Actor, hypothetical_delta_q, neighbour_rows
@@ -86,7 +89,7 @@ def collect(
     )
     obs = env.reset()
     actor = Actor(model, env.batch, env.slots)
-    probs, deltas, counts, reaches = [], [], [], []
+    probs, deltas, ties = [], [], []
     done = np.zeros(env.batch, dtype=bool)
     step = 0
     while not done.all():
@@ -102,13 +105,10 @@ def collect(
                 logits = model.leader(feats, neighbour_rows(tables))[rows]
             probs.append(torch.sigmoid(logits).numpy())
             deltas.append(delta.numpy())
-            for b in range(env.batch):
-                count, reach = group_ties(actor.groups[b], present[b])
-                counts.append(count)
-                reaches.append(reach)
+            ties += [group_ties(actor.groups[b], present[b]) for b in range(env.batch)]
         obs, _, done = env.step(actions)
         step += 1
-    return tuple(np.concatenate(x) for x in (probs, deltas, counts, reaches))
+    return np.concatenate(probs), np.concatenate(deltas), np.concatenate(ties)
 
 
 def row(
@@ -116,10 +116,10 @@ def row(
     prob: np.ndarray,
     delta: np.ndarray,
     threshold: float,
-    counts: np.ndarray,
-    reach: np.ndarray,
+    ties: np.ndarray,
 ) -> LeaderRow:
-    """The statistics of one fleet size's candidates, and of its agents' group ties."""
+    """The statistics of one fleet size's candidates, and of its agents' :func:`group_ties`
+    rows (at least one)."""
     from udan.learner import leader_targets
 
     lead = prob > threshold
@@ -134,15 +134,16 @@ def row(
         "mean ΔQ of others": float(delta[~lead].mean()) if (~lead).any() else float("nan"),
         "corr(p, ΔQ)": float(np.corrcoef(prob, delta)[0, 1]) if varied else float("nan"),
     }
-    ties = {
+    counts, reach, fleet = ties.T
+    shares = {
         "in no group": float((counts == 0).mean()),
-        "in 1 group": float((counts == 1).mean()),
+        "in 1": float((counts == 1).mean()),
         "in 2": float((counts == 2).mean()),
         "in 3 or more": float((counts >= 3).mean()),
         "mean reach": float(reach.mean()),
-        "largest reach": float(reach.max()),
+        "reach: whole fleet": float((reach == fleet).mean()),
     }
-    return LeaderRow(agents, len(delta), values, ties)
+    return LeaderRow(agents, len(delta), values, shares)
 
 
 def leader_table(
@@ -157,11 +158,9 @@ def leader_table(
     """One :class:`LeaderRow` per fleet size (obstacles drawn per episode from ``obstacles``)."""
     table = []
     for n in range(agents[0], agents[1] + 1):
-        prob, delta, counts, reach = collect(
-            model, env_name, n, obstacles, episodes, seed, **options
-        )
+        prob, delta, ties = collect(model, env_name, n, obstacles, episodes, seed, **options)
         if len(delta):
-            table.append(row(n, prob, delta, model.spec.leader_threshold, counts, reach))
+            table.append(row(n, prob, delta, model.spec.leader_threshold, ties))
     return table
 
 
@@ -185,14 +184,16 @@ def format_leaders(table: list[LeaderRow], title: str) -> str:
         lines.append(f"| {r.agents} | {r.candidates} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        "**The groups each agent is in at the same formations, and its reach** (agents joined to"
-        " it through shared groups, itself included: the most its message reaches in a step)",
+        "**The distinct groups each agent is in at the same formations, and its reach** (agents"
+        " joined to it through shared groups, itself included: the most its message reaches in a"
+        " step)",
         "",
         "| agents | " + " | ".join(TIES) + " |",
         "|---" * (len(TIES) + 1) + "|",
     ]
     for r in table:
-        shares = [f"{100 * r.ties[c]:.1f} %" for c in TIES[:4]]
-        reach = [f"{r.ties['mean reach']:.1f}", f"{r.ties['largest reach']:.0f}"]
-        lines.append(f"| {r.agents} | " + " | ".join(shares + reach) + " |")
+        cells = [
+            f"{r.ties[c]:.1f}" if c == "mean reach" else f"{100 * r.ties[c]:.1f} %" for c in TIES
+        ]
+        lines.append(f"| {r.agents} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

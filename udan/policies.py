@@ -362,7 +362,7 @@ class LinerPolicy:
     taken, so the agents stack up from the south-west corner into one contiguous column, which is
     the queue's line. An agent whose west cell another agent holds steps north (the stack's open
     end), or waits. A reference for what the task gives without learning or communication, not
-    an optimum; it assumes no walls inside the map (the task's default).
+    an optimum; it refuses a map with walls inside (the task has none by default).
     """
 
     def __init__(self, seed: int | None = 0) -> None:
@@ -374,6 +374,8 @@ class LinerPolicy:
     def act(self, env) -> np.ndarray:
         if getattr(env, "has_opponents", True):
             raise ValueError("the liner plays MAgent queue (agents without opponents)")
+        if any(world.walls[1:-1, 1:-1].any() for world in env.envs):
+            raise ValueError("the liner lines up along a wall: it needs a map without inner walls")
         return _per_world(env, lambda b, world: self.act_in(world))
 
     def act_in(self, world) -> dict[str, int]:
