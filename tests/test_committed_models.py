@@ -5,8 +5,9 @@ retrained since has the digests of the code it was committed with (``hidden_goal
 evaluation here the two play the same episodes to the same scores, their exports differ;
 ``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
-``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix`` and
-``baselines/magent_tiger_vdn``: at 9fa5f8f).
+``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix``,
+``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn`` and
+``baselines/magent_tiger_qmix``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -74,6 +75,10 @@ BEFORE = {
         "c2715a2d4fc42743dd76225ff94d450c032d4e2011e2f41c9f4fa378a85de46f",
         "23ea9ddb85184b541a88c560b1bcc40874f87bc186179b3a3aecb63a08d86a73",
     ),
+    "baselines/magent_pursuit_coma": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "ac38ff0caad90584a7881577fd1efa48b454cbd78cadf88c511003974c67d8d7",
+    ),
     "baselines/magent_pursuit_iql": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "cba476b48fe0a9e5705e9412b08678f9d6e05fbb8d0c369577057218134352c7",
@@ -85,6 +90,10 @@ BEFORE = {
     "baselines/magent_pursuit_vdn": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "d640a65ab3f9a3c467c224434f313a984024043a070f64f809901cdcd1a0a329",
+    ),
+    "baselines/magent_tiger_qmix": (
+        "d30bd04a98043abef895e0ff86993cb56eba29eea5bf015c1b62b46031188137",
+        "d3949d5f88dffd85346f8fa4f8a89b93f7d950e62b28bab66eab88053ddc42cb",
     ),
     "baselines/magent_tiger_vdn": (
         "3d1b2ef86d0e05f0a91e5e906cb901ef6cf405fbbffac174286337937e2878ff",
