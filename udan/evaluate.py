@@ -377,10 +377,13 @@ def _probed_model(args: argparse.Namespace, sources: list):
     return policies[0].model
 
 
-def learning_curves(runs: list[Path], path: Path | None) -> str:
+def learning_curves(
+    runs: list[Path], path: Path | None, panel: Callable[[Path], str] = lambda run: ""
+) -> str:
     """Each run's training return against environment steps (its ``progress.csv``), plotted to
-    ``path``; returns a markdown table of the last two tenths of each run, to tell whether the
-    curve has levelled off."""
+    ``path``, one panel per distinct ``panel(run)`` (the paper's Fig. 5 has one per scenario, as
+    their returns differ by orders of magnitude); returns a markdown table of the last two tenths
+    of each run, to tell whether the curve has levelled off."""
     curves = {}
     for run in runs:
         file = run / "progress.csv"
@@ -390,16 +393,17 @@ def learning_curves(runs: list[Path], path: Path | None) -> str:
             rows = [(int(r["steps"]), float(r["return"])) for r in csv.DictReader(f)]
         if len(rows) < 2:
             raise EnvConfigError(f"--curves: {run} has only {len(rows)} row(s) of progress")
-        curves[run.name] = np.array(rows)
+        curves[run] = np.array(rows)
     lines = [
         "| run | steps | return, 8th-9th tenth | return, last tenth | change |",
         "|---|---|---|---|---|",
     ]
-    for name, rows in curves.items():
+    for run, rows in curves.items():
         tenth = max(len(rows) // 10, 1)
         before, last = rows[-2 * tenth : -tenth, 1].mean(), rows[-tenth:, 1].mean()
         lines.append(
-            f"| {name} | {int(rows[-1, 0]):,} | {before:.2f} | {last:.2f} | {last - before:+.2f} |"
+            f"| {run.name} | {int(rows[-1, 0]):,} | {before:.2f} | {last:.2f} | "
+            f"{last - before:+.2f} |"
         )
     if path is not None:
         import matplotlib
@@ -407,13 +411,17 @@ def learning_curves(runs: list[Path], path: Path | None) -> str:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for name, rows in curves.items():
-            ax.plot(rows[:, 0], rows[:, 1], label=name, lw=1)
-        ax.set_xlabel("environment steps")
-        ax.set_ylabel("training return (mean of the last 200 episodes, with exploration)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        titles = list(dict.fromkeys(panel(run) for run in curves))
+        fig, axes = plt.subplots(1, len(titles), figsize=(6 * len(titles), 4), squeeze=False)
+        for ax, title in zip(axes[0], titles, strict=True):
+            for run, rows in curves.items():
+                if panel(run) == title:
+                    ax.plot(rows[:, 0], rows[:, 1], label=run.name, lw=1)
+            ax.set_title(title)
+            ax.set_xlabel("environment steps")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        axes[0, 0].set_ylabel("training return\n(mean of the last 200 episodes, with exploration)")
         fig.tight_layout()
         fig.savefig(path, dpi=100)
         plt.close(fig)

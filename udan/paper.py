@@ -21,6 +21,7 @@ import argparse
 import hashlib
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -383,12 +384,15 @@ def _shuffle_table(
     return format_paired(full, {"messages=shuffle": shuffled}, title)
 
 
-def _curves(models: Path, entries, png: Path | None) -> str | None:
-    """The learning-curve table of the entries whose folder keeps its ``progress.csv``."""
+def _curves(
+    models: Path, entries, png: Path | None, panel: Callable[[Path], str] = lambda run: ""
+) -> str | None:
+    """The learning-curve table of the entries whose folder keeps its ``progress.csv``; the
+    figure has a panel per distinct ``panel(run folder)``."""
     runs = [
         models / folder for _, folder, *_ in entries if (models / folder / "progress.csv").is_file()
     ]
-    return learning_curves(runs, png) if runs else None
+    return learning_curves(runs, png, panel) if runs else None
 
 
 def arena_section(
@@ -591,7 +595,14 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
         curves += [e for e in entries if loaded[e[0]] is not None]
-    table = _curves(settings.models, curves, settings.figures / "fig5_curves.png")
+    scenario = {
+        settings.models / folder: f"magent/{name}"
+        for name, entries in MAGENT.items()
+        for _, folder, _ in entries
+    }
+    table = _curves(
+        settings.models, curves, settings.figures / "fig5_curves.png", lambda run: scenario[run]
+    )
     out += shuffles
     out += [
         "",
