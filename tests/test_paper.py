@@ -109,6 +109,17 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
         ),
         log=quiet,
     )
+    train(  # a second training seed, in a seed<k>/ folder of its own
+        TrainConfig(
+            env="magent/queue",
+            steps=480,
+            seed=1,
+            out=str(models / "magent_queue" / "seed1"),
+            **queue,
+            **tiny,
+        ),
+        log=quiet,
+    )
     pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
     train(
         TrainConfig(
@@ -132,6 +143,35 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     for scenario, trained in (("queue", "1-3"), ("pursuit", "2-3")):
         shuffle = text.index(f"**{scenario}: UDAN with shuffled messages, paired")
         assert f"| {trained} pooled |" in text[shuffle:].split("\n\n", 2)[1]
+    _the_seeds_table_is_each_seed_played_alone(text, models)
+    assert "**pursuit: across training seeds**" not in text  # one seed: no table
+
+
+def _the_seeds_table_is_each_seed_played_alone(text: str, models: Path) -> None:
+    """Each seed's score is udan-eval's pooled score of that checkpoint alone (10 episodes per N,
+    udan-paper's default), their CI is Student's t over the seeds, and the shuffle row is each
+    seed's paired loss."""
+    from scipy import stats
+
+    options = {"map_size": 8, "max_steps": 12}
+    scores, costs = [], []
+    for folder in ("magent_queue", "magent_queue/seed1"):
+        model, _ = load_model(models / folder / "checkpoint.pt")
+        full, shuffled = (
+            np.concatenate(
+                [c.scores for c in evaluate("magent/queue", policy, (1, 3), (0, 0), 10, 0, options)]
+            ).mean()
+            for policy in (CheckpointPolicy(model), CheckpointPolicy(model, "messages=shuffle", 0))
+        )
+        scores.append(full)
+        costs.append(shuffled - full)
+    udan = _row(text, "queue: across training seeds", "UDAN")
+    assert udan[:3] == pytest.approx([*scores, np.mean(scores)], abs=0.006)
+    half = stats.t.ppf(0.975, 1) * np.std(scores, ddof=1) / np.sqrt(2)
+    assert udan[3:] == pytest.approx([np.mean(scores) - half, np.mean(scores) + half], abs=0.006)
+    row = next(line for line in text.splitlines() if line.startswith("| UDAN, Δ messages=shuffle"))
+    assert "| 0, 1 |" in row and f"{costs[0]:+.2f}, {costs[1]:+.2f}" in row
+    assert "| magent_queue/seed1 |" in text  # its learning curve, named by its folder
 
 
 @pytest.mark.parametrize(

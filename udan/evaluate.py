@@ -193,6 +193,16 @@ def mean_ci(values: np.ndarray) -> tuple[float, float]:
     return float(values.mean()), float(Z95 * values.std(ddof=1) / np.sqrt(values.size))
 
 
+def seeds_ci(values: list[float]) -> tuple[float, float]:
+    """Mean of one score per training seed and the half-width of its 95 % CI: Student's t with
+    n - 1 degrees of freedom, as a handful of training runs is far too few for the normal one."""
+    from scipy import stats
+
+    array = np.asarray(values, dtype=float)
+    half = stats.t.ppf(0.975, array.size - 1) * array.std(ddof=1) / np.sqrt(array.size)
+    return float(array.mean()), float(half)
+
+
 def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
     """Per-episode scores of every cell with ``agents`` agents, in cell then episode order."""
     return np.concatenate([r.scores for r in results if r.agents == agents])
@@ -378,12 +388,15 @@ def _probed_model(args: argparse.Namespace, sources: list):
 
 
 def learning_curves(
-    runs: list[Path], path: Path | None, panel: Callable[[Path], str] = lambda run: ""
+    runs: list[Path],
+    path: Path | None,
+    panel: Callable[[Path], str] = lambda run: "",
+    name: Callable[[Path], str] = lambda run: run.name,
 ) -> str:
     """Each run's training return against environment steps (its ``progress.csv``), plotted to
     ``path``, one panel per distinct ``panel(run)`` (the paper's Fig. 5 has one per scenario, as
-    their returns differ by orders of magnitude); returns a markdown table of the last two tenths
-    of each run, to tell whether the curve has levelled off."""
+    their returns differ by orders of magnitude) and labelled ``name(run)``; returns a markdown
+    table of the last two tenths of each run, to tell whether the curve has levelled off."""
     curves = {}
     for run in runs:
         file = run / "progress.csv"
@@ -402,7 +415,7 @@ def learning_curves(
         tenth = max(len(rows) // 10, 1)
         before, last = rows[-2 * tenth : -tenth, 1].mean(), rows[-tenth:, 1].mean()
         lines.append(
-            f"| {run.name} | {int(rows[-1, 0]):,} | {before:.2f} | {last:.2f} | "
+            f"| {name(run)} | {int(rows[-1, 0]):,} | {before:.2f} | {last:.2f} | "
             f"{last - before:+.2f} |"
         )
     if path is not None:
@@ -416,7 +429,7 @@ def learning_curves(
         for ax, title in zip(axes[0], titles, strict=True):
             for run, rows in curves.items():
                 if panel(run) == title:
-                    ax.plot(rows[:, 0], rows[:, 1], label=run.name, lw=1)
+                    ax.plot(rows[:, 0], rows[:, 1], label=name(run), lw=1)
             ax.set_title(title)
             ax.set_xlabel("environment steps")
             ax.grid(alpha=0.3)

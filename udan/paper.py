@@ -8,7 +8,10 @@ markdown file (``make paper`` writes ``docs/results.md``), each beside the paper
 - The positive control (``arena/hidden_goal``, not in the paper): UDAN against the proven
   no-message bound, its no-message twin and IQL, and what shuffled messages cost.
 - Table II and Fig. 5 (MAgent pursuit, tiger, queue): a model's row where one is committed, and
-  "not trained yet" where none is: a number that was not measured is never written.
+  "not trained yet" where none is: a number that was not measured is never written. A learner
+  trained with more seeds keeps each further seed in a ``seed<k>/`` folder inside its own; the
+  scenario then gets a table across seeds (each seed's score, a CI over seeds, UDAN against the
+  baseline seed by seed, what shuffled messages cost each UDAN seed).
 
 Models are found by folder under ``--models`` (:data:`FIG7`, :data:`FIG8`, :data:`CONTROL`,
 :data:`MAGENT`); each evaluation is seeded as ``udan-eval`` seeds it (the same layouts for every
@@ -37,6 +40,7 @@ from udan.evaluate import (
     learning_curves,
     mean_ci,
     pooled_scores,
+    seeds_ci,
 )
 from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES
@@ -392,7 +396,11 @@ def _curves(
     runs = [
         models / folder for _, folder, *_ in entries if (models / folder / "progress.csv").is_file()
     ]
-    return learning_curves(runs, png, panel) if runs else None
+    if not runs:
+        return None
+    return learning_curves(
+        runs, png, panel, lambda run: str(run.relative_to(models)).removeprefix("baselines/")
+    )
 
 
 def arena_section(
@@ -536,17 +544,92 @@ def control_section(settings: Settings) -> tuple[str, list[Loaded]]:
     return "\n".join(out), [m for m in loaded.values() if m is not None]
 
 
+def _scores(results: list[CellResult]) -> np.ndarray:
+    """Every episode's score of ``results``, pooled over its cells."""
+    return np.concatenate([r.scores for r in results])
+
+
 def _pooled(results: list[CellResult]) -> str:
     """Every episode's score of ``results`` pooled: "mean [95 % CI]"."""
-    mean, half = mean_ci(np.concatenate([r.scores for r in results]))
+    mean, half = mean_ci(_scores(results))
     return f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}]"
+
+
+def _seeds(models: Path, label: str, folder: str) -> list[Loaded]:
+    """The models of ``folder``'s other training seeds, each in a ``seed<k>/`` folder of its own
+    (the folder itself holds the first)."""
+    found = sorted(
+        (models / folder).glob("seed*/checkpoint.pt"), key=lambda p: int(p.parent.name[4:])
+    )
+    entries = [(label, f"{folder}/{p.parent.name}") for p in found]
+    return [load_models(models, [entry])[label] for entry in entries]
+
+
+def _seed_row(label: str, seeds: list[int], scores: list[float], sign: bool = False) -> str:
+    """One row of the seeds table: every seed's score and their mean with its t-based CI."""
+    mean, half = seeds_ci(scores)
+    fmt = "{:+.2f}" if sign else "{:.2f}"
+    each = ", ".join(fmt.format(v) for v in scores)
+    interval = f"{fmt.format(mean)} [{fmt.format(mean - half)}, {fmt.format(mean + half)}]"
+    return f"| {label} | {', '.join(map(str, seeds))} | {each} | {interval} |"
+
+
+def _seeds_table(
+    scenario: str, per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]], settings: Settings
+) -> str:
+    """Every learner trained with more than one seed: each seed's pooled score, their mean with
+    a CI across seeds (the spread between training runs, which one run's episode CI does not
+    show), UDAN minus each such baseline seed against seed, and what shuffled messages cost each
+    UDAN seed (paired on its episodes)."""
+    lines = [
+        f"**{scenario}: across training seeds** (each seed's score pooled over every N and "
+        "episode above, every seed on the same episodes; the 95 % CI is Student's t over seeds)",
+        "",
+        "| policy | training seeds | score per seed | mean over seeds [95 % CI] |",
+        "|---|---|---|---|",
+    ]
+    means = {
+        label: (
+            [m.checkpoint["config"]["seed"] for m, _ in runs],
+            [_scores(r).mean() for _, r in runs],
+        )
+        for label, runs in per_seed.items()
+        if len(runs) > 1
+    }
+    for label, (seeds, scores) in means.items():
+        lines.append(_seed_row(label, seeds, scores))
+    if "UDAN" not in means:
+        return "\n".join(lines)
+    ours, mine = means["UDAN"]
+    for label, (seeds, scores) in means.items():
+        if label != "UDAN" and len(seeds) == len(ours):
+            pairs = [f"{a}-{b}" for a, b in zip(ours, seeds, strict=True)]
+            diffs = [a - b for a, b in zip(mine, scores, strict=True)]
+            lines.append(_seed_row(f"UDAN − {label}, seed against seed", pairs, diffs, True))
+    if per_seed["UDAN"][0][0].model.spec.communicates:
+        costs = []
+        for model, results in per_seed["UDAN"]:
+            agents = (min(r.agents for r in results), max(r.agents for r in results))
+            shuffled = _play(
+                model,
+                model.checkpoint["env"],
+                agents,
+                (0, 0),
+                settings,
+                "messages=shuffle",
+                settings.magent_episodes,
+            )
+            costs.append(_scores(shuffled).mean() - _scores(results).mean())
+        lines.append(_seed_row("UDAN, Δ messages=shuffle (paired)", ours, costs, True))
+    return "\n".join(lines)
 
 
 def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
     """Table II (pursuit) and Fig. 5 (pursuit, queue, tiger): each committed model evaluated over
     the fleet sizes its scenario's UDAN was trained on; the paper's numbers beside them; and
     what shuffled messages cost each UDAN, paired on the same episodes (the communication
-    criterion is read in that table's pooled row)."""
+    criterion is read in that table's pooled row); across training seeds where a learner has
+    more than one."""
     out = [
         "## Table II and Fig. 5: MAgent pursuit, tiger and queue",
         "",
@@ -556,11 +639,13 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         "| scenario | policy | trained on N | tested on N | ours [95 % CI] | paper (Table II) |",
         "|---|---|---|---|---|---|",
     ]
-    everything, curves, shuffles = [], [], []
+    everything, curves, shuffles, seed_tables = [], [], [], []
     for scenario, entries in MAGENT.items():
         loaded = load_models(settings.models, entries)
         udan = loaded["UDAN"]
-        for (label, _, algo), model in zip(entries, loaded.values(), strict=True):
+        per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]] = {}
+        seed_curves: list[tuple[str, str]] = []
+        for (label, folder, algo), model in zip(entries, loaded.values(), strict=True):
             paper = TABLE_II.get(algo, {}) if scenario == "pursuit" else {}
             theirs = ", ".join(f"{v:g} (trained on {n})" for n, v in paper.items())
             theirs = theirs or "curves only (Fig. 5)"
@@ -580,6 +665,15 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                     udan, results, env, agents, (0, 0), settings, scenario, settings.magent_episodes
                 )
                 shuffles += ["", shuffle]
+            seeds = _seeds(settings.models, label, folder)
+            per_seed[label] = [(model, results)]
+            for other in seeds:
+                played = _play(
+                    other, env, agents, (0, 0), settings, episodes=settings.magent_episodes
+                )
+                per_seed[label].append((other, played))
+            everything += seeds
+            seed_curves += [(label, other.folder) for other in seeds]
         if udan is not None:
             policy, label = SCRIPTED[scenario]
             results = evaluate(
@@ -594,16 +688,21 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             out.append(
                 f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
-        curves += [e for e in entries if loaded[e[0]] is not None]
+        curves += [e for e in entries if loaded[e[0]] is not None] + seed_curves
+        if any(len(runs) > 1 for runs in per_seed.values()):
+            seed_tables += ["", _seeds_table(scenario, per_seed, settings)]
     scenario = {
         settings.models / folder: f"magent/{name}"
         for name, entries in MAGENT.items()
-        for _, folder, _ in entries
+        for _, folder, *_ in entries
     }
     table = _curves(
-        settings.models, curves, settings.figures / "fig5_curves.png", lambda run: scenario[run]
+        settings.models,
+        curves,
+        settings.figures / "fig5_curves.png",
+        lambda run: scenario.get(run) or scenario[run.parent],  # a seed<k>/ under its first
     )
-    out += shuffles
+    out += shuffles + seed_tables
     out += [
         "",
         "Fig. 5 (learning curves): "
