@@ -40,6 +40,17 @@ def _stream(steps: int = 7):
     return out
 
 
+def _scores(model: MultiAgentQ, feats: torch.Tensor, pos, present) -> np.ndarray:
+    """The leader classifier's probabilities (BATCH, AGENTS) from one step's features."""
+    from udan.envs.grouping import neighbour_tables
+    from udan.learner import neighbour_rows
+
+    with torch.no_grad():
+        tables = neighbour_tables(pos, present, model.spec.attention_neighbours)
+        logits = model.leader(feats, neighbour_rows(tables))
+    return torch.sigmoid(logits).view(BATCH, AGENTS).numpy()
+
+
 def _play(model: MultiAgentQ, ablate: str | None) -> list[dict]:
     """Per step: groups, features and messages of an actor fed the recorded stream."""
     actor = Actor(model, BATCH, AGENTS, ablate, np.random.default_rng(2))
@@ -51,6 +62,7 @@ def _play(model: MultiAgentQ, ablate: str | None) -> list[dict]:
                 "groups": [g.copy() for g in actor.groups],
                 "feats": actor.feats.view(BATCH, AGENTS, -1).clone(),
                 "messages": actor.messages.view(BATCH, AGENTS, -1).clone(),
+                "prob": _scores(model, actor.feats, pos, present),
             }
         )
     return steps
@@ -63,12 +75,7 @@ def plain_and_model():
     obs, present, pos, fresh = _stream(1)[0]
     actor = Actor(model, BATCH, AGENTS)
     actor.act(obs, present, pos, fresh)
-    from udan.envs.grouping import neighbour_tables
-    from udan.learner import neighbour_rows
-
-    with torch.no_grad():
-        tables = neighbour_tables(pos, present, model.spec.attention_neighbours)
-        prob = torch.sigmoid(model.leader(actor.feats, neighbour_rows(tables))).numpy()
+    prob = _scores(model, actor.feats, pos, present)
     model.spec = dataclasses.replace(model.spec, leader_threshold=float(np.median(prob)))
     return _play(model, None), model
 
@@ -123,6 +130,28 @@ def test_random_leaders_are_as_many_as_the_learned_ones(plain_and_model):
         counts = [len(g) for g in step["groups"]]
         assert counts == [len(g) for g in base["groups"]]
     assert not all(_same_groups(m["groups"], p["groups"]) for m, p in zip(mine, plain, strict=True))
+
+
+def _leaders(step: dict) -> list[list[int]]:
+    return [sorted(g[:, 0].tolist()) for g in step["groups"]]
+
+
+def test_top_half_leaders_are_the_half_the_scorer_ranks_highest(plain_and_model):
+    plain, model = plain_and_model
+    top = _play(model, "leaders=top-half")
+    for step in top[:: model.spec.group_interval]:  # the steps that form groups
+        for groups, prob in zip(step["groups"], step["prob"], strict=True):
+            ranked = np.argsort(-prob, kind="stable")[: (AGENTS + 1) // 2]
+            assert sorted(groups[:, 0].tolist()) == sorted(ranked.tolist())
+            assert groups.shape[1] == model.spec.group_size
+    for mine, base in zip(top, plain, strict=True):
+        assert torch.equal(mine["feats"], base["feats"])
+    # the threshold (the fixture's median) lets another share lead at some formation
+    assert any(len(g) != (AGENTS + 1) // 2 for step in plain for g in step["groups"])
+    random = _play(model, "leaders=random-half")
+    for step in random:
+        assert all(len(g) == (AGENTS + 1) // 2 for g in step["groups"])
+    assert any(_leaders(r) != _leaders(t) for r, t in zip(random, top, strict=True))
 
 
 def test_all_leaders_means_a_group_per_agent_led_by_it(plain_and_model):

@@ -8,6 +8,9 @@ ABLATIONS: dict[str, str] = {
     "groups": "every agent is a group of its own: the message path runs over the agent alone",
     "leaders=random": "as many leaders as the scorer picks, chosen at random among the agents",
     "leaders=all": "every agent leads a group (in the scorer's order)",
+    "leaders=top-half": "the half of the agents (rounded up) the scorer ranks highest lead, "
+    "whatever the threshold says",
+    "leaders=random-half": "as many leaders as leaders=top-half, chosen at random among the agents",
 }
 
 

@@ -229,14 +229,21 @@ class Actor:
         threshold = self.model.spec.leader_threshold
         if self.ablate == "leaders=all":
             return np.where(present, prob + 1.0, prob)  # all above the threshold, same order
-        if self.ablate != "leaders=random":
+        if self.ablate not in ("leaders=random", "leaders=top-half", "leaders=random-half"):
             return prob
-        out = np.zeros_like(prob)
+        out = np.zeros_like(prob)  # below any threshold in (0, 1]: nobody else leads
         for b in range(self.batch):
             slots = np.flatnonzero(present[b])
-            count = int((prob[b, slots] > threshold).sum())
-            chosen = self.rng.permutation(slots)[:count]
-            out[b, chosen] = 1.0 + self.rng.random(count)  # a random order for bridges too
+            if self.ablate == "leaders=random":
+                count = int((prob[b, slots] > threshold).sum())
+            else:
+                count = (slots.size + 1) // 2
+            if self.ablate == "leaders=top-half":
+                chosen = slots[np.argsort(-prob[b, slots], kind="stable")[:count]]
+                out[b, chosen] = 1.0 + prob[b, chosen]  # the scorer's order
+            else:
+                chosen = self.rng.permutation(slots)[:count]
+                out[b, chosen] = 1.0 + self.rng.random(count)  # a random order for bridges too
         return out
 
     def _ablated_messages(self, messages: torch.Tensor) -> torch.Tensor:
