@@ -295,7 +295,7 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
         "--episodes",
         "30",
         "--ablate",
-        "messages=shuffle,leaders=all",
+        "messages=shuffle,leaders=all,leaders=top-half,leaders=random-half",
         "--probe",
         "--leaders",
         "--out",
@@ -305,6 +305,14 @@ def test_train_ablate_probe_and_export_through_the_real_clis(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "no-message bound" in report and "Δ messages=shuffle" in report
     assert "R² shuffled message" in report
+    # the top half against random leaders: each one's Δ to the full model, and to each other
+    ablations = report.split("ablations, paired")[1].split("\n\n")[1]
+    pooled = next(line for line in ablations.splitlines() if "pooled" in line).split(" | ")
+    top, random = (float(pooled[i].split(" [")[0]) for i in (9, 12))  # their Δ to the full
+    same = report.split("top half against random leaders at the same share")[1].split("\n\n")[1]
+    row = next(line for line in same.splitlines() if "pooled" in line).split(" | ")
+    assert float(row[1]) == pytest.approx(float(pooled[11]), abs=0.006)  # random-half's score
+    assert float(row[3].split(" [")[0]) == pytest.approx(top - random, abs=0.011)
     assert "| 2 | " in report.split("leaders against ΔQ")[1]
     out = _run(str(BIN / "udan-export"), ckpt, "-o", str(tmp_path / "policy.onnx"))
     assert out.returncode == 0, out.stdout + out.stderr

@@ -188,6 +188,12 @@ class CheckpointPolicy:
 Z95 = 1.959964
 
 
+#: The two ablations that set the learned leader ranking against random leaders at one share
+#: (half the agents), where the threshold lets (nearly) everyone lead: given both, ``--ablate``
+#: also pairs them with each other.
+SAME_SHARE = ("leaders=random-half", "leaders=top-half")
+
+
 def mean_ci(values: np.ndarray) -> tuple[float, float]:
     """Mean of ``values`` and the half-width of its 95 % CI."""
     return float(values.mean()), float(Z95 * values.std(ddof=1) / np.sqrt(values.size))
@@ -619,6 +625,13 @@ def main(argv: list[str] | None = None) -> int:
             f"{env_name}, {label}: ablations, paired on the same {args.episodes} episodes per cell"
         )
         reports.append(format_paired(tables[label], ablated, title))
+    if all(mode in ablated for mode in SAME_SHARE):
+        base, other = SAME_SHARE
+        title = (
+            f"{env_name}, {sources[0][0]}: the scorer's top half against random leaders at the "
+            f"same share, paired on the same {args.episodes} episodes per cell"
+        )
+        reports.append(format_paired(ablated[base], {other: ablated[other]}, title, base=base))
     if probes:
         reports.append(
             format_probe(probes, f"{env_name}, {sources[0][0]}: linear probe of the goal's cell")
