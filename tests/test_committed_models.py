@@ -6,8 +6,9 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``surround`` and ``baselines/surround_*``: trained at cc808f3; ``magent_pursuit``: at 0a41569;
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
 ``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix``,
-``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn`` and
-``baselines/magent_tiger_qmix``: at 9fa5f8f).
+``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn``,
+``baselines/magent_tiger_qmix`` and its second training seed ``baselines/magent_tiger_qmix/seed1``:
+at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -94,6 +95,10 @@ BEFORE = {
     "baselines/magent_tiger_qmix": (
         "d30bd04a98043abef895e0ff86993cb56eba29eea5bf015c1b62b46031188137",
         "d3949d5f88dffd85346f8fa4f8a89b93f7d950e62b28bab66eab88053ddc42cb",
+    ),
+    "baselines/magent_tiger_qmix/seed1": (
+        "6f5adb517b7428100f0b8f503e8e387fa9fc4a90e0026b5fbbb1210451012007",
+        "ec19394ef04a983232533c3ae448d92422bd28773d93725eaa4d2b7e74b65388",
     ),
     "baselines/magent_tiger_vdn": (
         "3d1b2ef86d0e05f0a91e5e906cb901ef6cf405fbbffac174286337937e2878ff",
