@@ -7,8 +7,9 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
 ``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix``,
 ``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn``,
-``baselines/magent_tiger_qmix`` and its second training seed ``baselines/magent_tiger_qmix/seed1``:
-at 9fa5f8f).
+``baselines/magent_tiger_qmix``, the second training seeds ``baselines/magent_tiger_qmix/seed1``
+and ``magent_tiger/seed1``, ``magent_queue``, ``baselines/magent_queue_qmix`` and
+``baselines/magent_queue_vdn``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -92,6 +93,14 @@ BEFORE = {
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "d640a65ab3f9a3c467c224434f313a984024043a070f64f809901cdcd1a0a329",
     ),
+    "baselines/magent_queue_qmix": (
+        "4cb0bdbbbf095942a8619c2274ea221226a3dccbf10f4cb1570ee81fab1f199b",
+        "2f1149ddcf47aaecd8eaa73821d3fbab1848d26751674d9e5b9d592c2636457e",
+    ),
+    "baselines/magent_queue_vdn": (
+        "73608d60daac8cb9f3063d9f0619f9debf7718451d90f5f8d8508d916eb18c44",
+        "d1f4af7b53af565925b72432f0067398f589874a32e95f691f4d1e8101991c93",
+    ),
     "baselines/magent_tiger_qmix": (
         "d30bd04a98043abef895e0ff86993cb56eba29eea5bf015c1b62b46031188137",
         "d3949d5f88dffd85346f8fa4f8a89b93f7d950e62b28bab66eab88053ddc42cb",
@@ -124,9 +133,17 @@ BEFORE = {
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "26f358777635dacfc64c6e7de64e1ca594bdd4219b821e3cecd7096f1954bfd1",
     ),
+    "magent_queue": (
+        "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",
+        "f6bfe13cbf6b7af045c47020bb557531a0da950eedeb6bbf989406136b7ffc96",
+    ),
     "magent_tiger": (
         "d6ab7da2424be1df56d52ceb79d46452c041947cbb464e17de54815df11dec39",
         "2a2be4d2aff5545df8b862cdc6f30f9178d23aa358256c69814628f7cc1b8dee",
+    ),
+    "magent_tiger/seed1": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "2e8df99352ab1f9ef996b21f8f7df2630ac40633789a312a20581e6aa7144737",
     ),
 }
 
