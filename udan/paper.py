@@ -21,6 +21,7 @@ policy), so the same models give the same file, byte for byte.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import sys
 import time
@@ -353,23 +354,25 @@ class Settings:
     """Episodes per number of agents on the MAgent scenarios (300 steps of up to 20 agents)."""
     seed: int
     """Seed of layouts and policies (udan-eval's)."""
+    played: dict = dataclasses.field(default_factory=dict)
+    """Evaluations already run, by model folder and arguments: one is played once per file."""
 
 
 def _play(
     loaded: Loaded | None, env: str, agents, obstacles, settings: Settings, ablate=None, episodes=0
 ) -> list[CellResult] | None:
+    """``loaded``'s evaluation as udan-eval seeds it (None without a model); seeded, so the same
+    arguments give the same results and a second call returns the first's."""
     if loaded is None:
         return None
-    policy = CheckpointPolicy(loaded.model, ablate, settings.seed)
-    return evaluate(
-        env,
-        policy,
-        agents,
-        obstacles,
-        episodes or settings.episodes,
-        settings.seed,
-        loaded.options(),
-    )
+    episodes = episodes or settings.episodes
+    key = (loaded.folder, env, tuple(agents), tuple(obstacles), ablate, episodes)
+    if key not in settings.played:
+        policy = CheckpointPolicy(loaded.model, ablate, settings.seed)
+        settings.played[key] = evaluate(
+            env, policy, agents, obstacles, episodes, settings.seed, loaded.options()
+        )
+    return settings.played[key]
 
 
 def _shuffle_table(
@@ -561,8 +564,8 @@ def _seeds(models: Path, label: str, folder: str) -> list[Loaded]:
     found = sorted(
         (models / folder).glob("seed*/checkpoint.pt"), key=lambda p: int(p.parent.name[4:])
     )
-    entries = [(label, f"{folder}/{p.parent.name}") for p in found]
-    return [load_models(models, [entry])[label] for entry in entries]
+    entries = [(f"{label}, {p.parent.name}", f"{folder}/{p.parent.name}") for p in found]
+    return list(load_models(models, entries).values())
 
 
 def _seed_row(label: str, seeds: list[int], scores: list[float], sign: bool = False) -> str:
