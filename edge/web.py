@@ -85,6 +85,8 @@ PER_CAR = {  # per-car telemetry count, metric name (without _total), help
 }
 COUNTS = {  # run-wide telemetry count, metric name (without _total), help
     "steps": ("udan_steps", "Decision steps dispatched"),
+    "recentre_rounds": ("udan_recentre_rounds", "Re-centring rounds before a step (their "
+                        "commands count in the per-car command counts)"),
     "frames": ("udan_frames", "Camera frames turned into cells"),
     "late_sends": ("udan_sends_late", "Sends not proven on time by the car (must stay 0)"),
     "late_executions": ("udan_executions_late", "Commands a car ran after their deadline "

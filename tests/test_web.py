@@ -52,7 +52,8 @@ METRICS = {
     "udan_frame_age_seconds", "udan_frames_stale", "udan_frames_incomplete",
     "udan_commands_sent", "udan_commands_acked", "udan_commands_late", "udan_commands_missed",
     "udan_commands_not_ready", "udan_cars_present", "udan_cars_joined", "udan_sightings",
-    "udan_groups", "udan_leaders", "udan_steps", "udan_frames", "udan_frames_dropped",
+    "udan_groups", "udan_leaders", "udan_steps", "udan_recentre_rounds", "udan_frames",
+    "udan_frames_dropped",
     "udan_sends_late", "udan_executions_late", "udan_remote_estops", "udan_estop_frames",
     "udan_score", "udan_stopped", "udan_web_clients", "udan_web_clients_dropped",
     "udan_web_estops_refused", "udan_live_records_dropped",
@@ -125,12 +126,13 @@ def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
             context.close()
 
 
-def _records(path: Path, kind: str) -> list[dict[str, Any]]:
-    """The complete lines of ``kind`` written so far (the edge flushes once a second)."""
+def _records(path: Path, *kinds: str) -> list[dict[str, Any]]:
+    """The complete lines of ``kinds`` written so far, in order (the edge flushes once a
+    second)."""
     if not path.exists():
         return []
     lines = path.read_text().split("\n")[:-1]  # the last may be half written
-    return [r for r in map(json.loads, lines) if r["kind"] == kind]
+    return [r for r in map(json.loads, lines) if r["kind"] in kinds]
 
 
 def _wait(check: Callable[[], Any], timeout_s: float = 30.0, what: str = "") -> Any:
@@ -216,14 +218,29 @@ def test_metrics_parse_and_say_what_the_run_recorded(sim):
     asked.discard("udan_edge")  # the dashboard's own name
     assert asked and asked <= families.keys(), asked - families.keys()
     steps, frames = int(_value(families, "udan_steps")), int(_value(families, "udan_frames"))
-    step_records = _wait(lambda: len(r := _records(sim.telemetry, "step")) >= steps and r)[:steps]
+    rounds = int(_value(families, "udan_recentre_rounds"))
+
+    def commanded() -> list[dict[str, Any]] | None:
+        """The step and re-centring records in the order written, up to the snapshot's
+        counts of each (a round's commands count in the per-car counts too)."""
+        taken, seen = [], Counter()
+        for r in _records(sim.telemetry, "step", "recentre"):
+            if seen[r["kind"]] < {"step": steps, "recentre": rounds}[r["kind"]]:
+                seen[r["kind"]] += 1
+                taken.append(r)
+        return taken if seen == Counter(step=steps, recentre=rounds) else None
+
+    records = _wait(commanded, what="the records of the snapshot's steps and rounds")
+    step_records = [r for r in records if r["kind"] == "step"]
     frame_records = _wait(lambda: len(r := _records(sim.telemetry, "frame")) >= frames and r)
     frame_records = frame_records[:frames]
     per_car: dict[str, Counter] = {str(car): Counter() for car in range(1, 6)}
-    for r in step_records:
+    for r in records:
         for car, outcome in r["outcomes"].items():
             per_car[car][outcome] += 1
-            per_car[car]["sent"] += r["sends"][car] > 0
+    for r in step_records:
+        for car, sends in r["sends"].items():
+            per_car[car]["sent"] += sends > 0
         for car in r["late_cars"]:
             per_car[str(car)]["late"] += 1
     for metric, key in (("udan_commands_sent", "sent"), ("udan_commands_acked", "on_time"),

@@ -24,10 +24,14 @@ import torch
 from udan.envs import EnvConfigError
 from udan.train import EpisodeReplay, TrainConfig, build, rollout, training_actor, update
 
-#: Updates timed after the first (which pays one-time costs and is not counted).
+#: Updates timed at least, after the first (which pays one-time costs and is not counted).
 TIMED_UPDATES = 3
-#: Rollouts timed at least (more when the first batch needs more episodes).
+#: Rollouts timed at least (more when the first batch needs more episodes), after a first one
+#: that pays one-time costs and is not counted.
 MEASURED_ROLLOUTS = 2
+#: Least wall time spent timing rollouts, and updates: quick ones are timed more often, so a
+#: short burst of other load on the machine does not decide a small run's projection.
+LEAST_TIMED_S = 1.0
 
 
 class TimedEnv:
@@ -76,16 +80,21 @@ def calibrate(cfg: TrainConfig) -> dict:
     timed = TimedEnv(env)
     actor = training_actor(cfg, model, env)
     rng = np.random.default_rng(cfg.seed)
-    started = time.perf_counter()
-    for _ in range(rollouts):
-        replay.add(rollout(timed, actor, cfg.eps_start, rng, model.spec.state_dim > 0))
-    rollout_s = (time.perf_counter() - started) / rollouts
-    env_step_s = timed.seconds / (rollouts * env.batch * max_steps)
+    has_state = model.spec.state_dim > 0
+    replay.add(rollout(timed, actor, cfg.eps_start, rng, has_state))
+    timed.seconds = 0.0
+    timed_rollouts, started = 0, time.perf_counter()
+    while timed_rollouts < rollouts or time.perf_counter() - started < LEAST_TIMED_S:
+        replay.add(rollout(timed, actor, cfg.eps_start, rng, has_state))
+        timed_rollouts += 1
+    rollout_s = (time.perf_counter() - started) / timed_rollouts
+    env_step_s = timed.seconds / (timed_rollouts * env.batch * max_steps)
     update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
-    started = time.perf_counter()
-    for _ in range(TIMED_UPDATES):
+    timed_updates, started = 0, time.perf_counter()
+    while timed_updates < TIMED_UPDATES or time.perf_counter() - started < LEAST_TIMED_S:
         update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
-    update_s = (time.perf_counter() - started) / TIMED_UPDATES
+        timed_updates += 1
+    update_s = (time.perf_counter() - started) / timed_updates
     replay_bytes = sum(a.nbytes for a in replay.data.values()) / replay.capacity
     replay_bytes *= cfg.buffer_episodes
     with tempfile.TemporaryDirectory() as folder:
@@ -110,7 +119,7 @@ def calibrate(cfg: TrainConfig) -> dict:
         "steps": int(cfg.steps),
         "episode_steps": max_steps,
         "obs_dim": env.spec.size,
-        "measured": {"rollouts": rollouts, "updates": TIMED_UPDATES},
+        "measured": {"rollouts": timed_rollouts, "updates": timed_updates},
         "seconds_per_env_step": env_step_s,
         "seconds_per_step_acting": rollout_s / (env.batch * max_steps) - env_step_s,
         "seconds_per_rollout": rollout_s,
