@@ -29,6 +29,10 @@ def _models(tmp_path: Path, *folders: str) -> Path:
     return models
 
 
+#: The queue VDN baseline's folder (three training seeds in the MAgent test's models).
+QUEUE_VDN = "baselines/magent_queue_vdn"
+
+
 def _row(text: str, title: str, first: str) -> list[float]:
     """The numbers of the row starting with ``| first |`` in the table under ``**title**``."""
     table = text[text.index(f"**{title}**") :]
@@ -103,23 +107,20 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     models = _models(tmp_path, "hidden_goal")
     queue = {"agents": "1-3", "obstacles": "0", "map_size": 8, "max_steps": 12}
     tiny = {**TINY, "leader_explore": 0.3}
-    train(
-        TrainConfig(
-            env="magent/queue", steps=480, out=str(models / "magent_queue"), **queue, **tiny
-        ),
-        log=quiet,
-    )
-    train(  # a second training seed, in a seed<k>/ folder of its own
-        TrainConfig(
-            env="magent/queue",
-            steps=480,
-            seed=1,
-            out=str(models / "magent_queue" / "seed1"),
-            **queue,
-            **tiny,
-        ),
-        log=quiet,
-    )
+    for folder, algo, seeds in (("magent_queue", "udan", 2), (QUEUE_VDN, "vdn", 3)):
+        for seed in range(seeds):  # further training seeds in seed<k>/ folders of their own
+            train(
+                TrainConfig(
+                    env="magent/queue",
+                    algo=algo,
+                    steps=480,
+                    seed=seed,
+                    out=str(models / folder / (f"seed{seed}" if seed else "")),
+                    **queue,
+                    **tiny,
+                ),
+                log=quiet,
+            )
     pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
     train(
         TrainConfig(
@@ -149,26 +150,38 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
 
 def _the_seeds_table_is_each_seed_played_alone(text: str, models: Path) -> None:
     """Each seed's score is udan-eval's pooled score of that checkpoint alone (10 episodes per N,
-    udan-paper's default), their CI is Student's t over the seeds, and the shuffle row is each
-    seed's paired loss."""
+    udan-paper's default), their CI is Student's t over the seeds, UDAN − VDN is Welch's t on
+    the two learners' seeds, and the shuffle row is each UDAN seed's paired loss."""
     from scipy import stats
 
-    options = {"map_size": 8, "max_steps": 12}
-    scores, costs = [], []
-    for folder in ("magent_queue", "magent_queue/seed1"):
+    def played(folder: str, ablate: str | None = None) -> float:
         model, _ = load_model(models / folder / "checkpoint.pt")
-        full, shuffled = (
-            np.concatenate(
-                [c.scores for c in evaluate("magent/queue", policy, (1, 3), (0, 0), 10, 0, options)]
-            ).mean()
-            for policy in (CheckpointPolicy(model), CheckpointPolicy(model, "messages=shuffle", 0))
+        policy = CheckpointPolicy(model, ablate, 0) if ablate else CheckpointPolicy(model)
+        options = {"map_size": 8, "max_steps": 12}
+        cells = evaluate("magent/queue", policy, (1, 3), (0, 0), 10, 0, options)
+        return np.concatenate([c.scores for c in cells]).mean()
+
+    table = "queue: across training seeds"
+    udan_folders = ("magent_queue", "magent_queue/seed1")
+    scores = {
+        "UDAN": [played(folder) for folder in udan_folders],
+        "VDN": [played(f"{QUEUE_VDN}{f'/seed{seed}' if seed else ''}") for seed in range(3)],
+    }
+    for label, each in scores.items():
+        n, mean = len(each), np.mean(each)
+        half = stats.t.ppf(0.975, n - 1) * np.std(each, ddof=1) / np.sqrt(n)
+        assert _row(text, table, label) == pytest.approx(
+            [*each, mean, mean - half, mean + half], abs=0.006
         )
-        scores.append(full)
-        costs.append(shuffled - full)
-    udan = _row(text, "queue: across training seeds", "UDAN")
-    assert udan[:3] == pytest.approx([*scores, np.mean(scores)], abs=0.006)
-    half = stats.t.ppf(0.975, 1) * np.std(scores, ddof=1) / np.sqrt(2)
-    assert udan[3:] == pytest.approx([np.mean(scores) - half, np.mean(scores) + half], abs=0.006)
+    welch = stats.ttest_ind(scores["UDAN"], scores["VDN"], equal_var=False).confidence_interval()
+    difference = np.mean(scores["UDAN"]) - np.mean(scores["VDN"])
+    assert _row(text, table, "UDAN − VDN (Welch's t)") == pytest.approx(
+        [difference, welch.low, welch.high], abs=0.006
+    )
+    costs = [
+        played(folder, "messages=shuffle") - full
+        for folder, full in zip(udan_folders, scores["UDAN"], strict=True)
+    ]
     row = next(line for line in text.splitlines() if line.startswith("| UDAN, Δ messages=shuffle"))
     assert "| 0, 1 |" in row and f"{costs[0]:+.2f}, {costs[1]:+.2f}" in row
     assert "| magent_queue/seed1 |" in text  # its learning curve, named by its folder

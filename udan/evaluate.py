@@ -209,6 +209,18 @@ def seeds_ci(values: list[float]) -> tuple[float, float]:
     return float(array.mean()), float(half)
 
 
+def welch_ci(a: list[float], b: list[float]) -> tuple[float, float]:
+    """Difference of two learners' means over their training seeds (a − b) and the half-width
+    of its 95 % CI: Welch's t, with the Welch-Satterthwaite degrees of freedom, since two
+    learners' seeds are independent runs, neither paired nor of equal spread."""
+    from scipy import stats
+
+    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    vx, vy = x.var(ddof=1) / x.size, y.var(ddof=1) / y.size
+    dof = (vx + vy) ** 2 / (vx**2 / (x.size - 1) + vy**2 / (y.size - 1))
+    return float(x.mean() - y.mean()), float(stats.t.ppf(0.975, dof) * np.sqrt(vx + vy))
+
+
 def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
     """Per-episode scores of every cell with ``agents`` agents, in cell then episode order."""
     return np.concatenate([r.scores for r in results if r.agents == agents])

@@ -42,6 +42,7 @@ from udan.evaluate import (
     mean_ci,
     pooled_scores,
     seeds_ci,
+    welch_ci,
 )
 from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES
@@ -570,11 +571,16 @@ def _seeds(models: Path, label: str, folder: str) -> list[Loaded]:
 
 def _seed_row(label: str, seeds: list[int], scores: list[float], sign: bool = False) -> str:
     """One row of the seeds table: every seed's score and their mean with its t-based CI."""
-    mean, half = seeds_ci(scores)
     fmt = "{:+.2f}" if sign else "{:.2f}"
     each = ", ".join(fmt.format(v) for v in scores)
-    interval = f"{fmt.format(mean)} [{fmt.format(mean - half)}, {fmt.format(mean + half)}]"
-    return f"| {label} | {', '.join(map(str, seeds))} | {each} | {interval} |"
+    return (
+        f"| {label} | {', '.join(map(str, seeds))} | {each} | {_interval(*seeds_ci(scores), fmt)} |"
+    )
+
+
+def _interval(mean: float, half: float, fmt: str) -> str:
+    """``mean [low, high]`` in ``fmt``."""
+    return f"{fmt.format(mean)} [{fmt.format(mean - half)}, {fmt.format(mean + half)}]"
 
 
 def _seeds_table(
@@ -582,11 +588,12 @@ def _seeds_table(
 ) -> str:
     """Every learner trained with more than one seed: each seed's pooled score, their mean with
     a CI across seeds (the spread between training runs, which one run's episode CI does not
-    show), UDAN minus each such baseline seed against seed, and what shuffled messages cost each
-    UDAN seed (paired on its episodes)."""
+    show), UDAN's mean minus each such baseline's (Welch's t: the runs are independent), and
+    what shuffled messages cost each UDAN seed (paired on its episodes)."""
     lines = [
         f"**{scenario}: across training seeds** (each seed's score pooled over every N and "
-        "episode above, every seed on the same episodes; the 95 % CI is Student's t over seeds)",
+        "episode above, every seed on the same episodes; the 95 % CI is Student's t over seeds, "
+        "and Welch's t for a difference of two learners' means)",
         "",
         "| policy | training seeds | score per seed | mean over seeds [95 % CI] |",
         "|---|---|---|---|",
@@ -605,10 +612,10 @@ def _seeds_table(
         return "\n".join(lines)
     ours, mine = means["UDAN"]
     for label, (seeds, scores) in means.items():
-        if label != "UDAN" and len(seeds) == len(ours):
-            pairs = [f"{a}-{b}" for a, b in zip(ours, seeds, strict=True)]
-            diffs = [a - b for a, b in zip(mine, scores, strict=True)]
-            lines.append(_seed_row(f"UDAN − {label}, seed against seed", pairs, diffs, True))
+        if label != "UDAN":
+            both = f"{', '.join(map(str, ours))} − {', '.join(map(str, seeds))}"
+            difference = _interval(*welch_ci(mine, scores), "{:+.2f}")
+            lines.append(f"| UDAN − {label} (Welch's t) | {both} | — | {difference} |")
     if per_seed["UDAN"][0][0].model.spec.communicates:
         costs = []
         for model, results in per_seed["UDAN"]:
