@@ -4,9 +4,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from udan.evaluate import evaluate, main
+from udan.evaluate import evaluate, main, welch_ci
 from udan.policies import OraclePolicy, RandomPolicy
 
 EVAL = [str(Path(sys.executable).with_name("udan-eval"))]
@@ -123,3 +124,19 @@ def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
     row = next(line for line in out.splitlines() if line.startswith("| 2 | "))
     base, other, delta = (float(cell.split()[0]) for cell in row.split("|")[2:5])
     assert delta == pytest.approx(other - base, abs=0.011)
+
+
+@pytest.mark.parametrize(
+    ("a", "b"), [([3.36, 0.75], [9.36, 14.47, 11.0]), ([1.0, 2.0, 4.0], [0.5, 0.7])]
+)
+def test_welch_interval_is_scipys(a, b):
+    from scipy import stats
+
+    difference, half = welch_ci(a, b)
+    ci = stats.ttest_ind(a, b, equal_var=False).confidence_interval()
+    assert difference == pytest.approx(np.mean(a) - np.mean(b))
+    assert (difference - half, difference + half) == pytest.approx((ci.low, ci.high))
+
+
+def test_welch_interval_of_seeds_that_all_scored_the_same_is_a_point():
+    assert welch_ci([-60.0, -60.0], [-60.0, -60.0, -60.0]) == (0.0, 0.0)

@@ -217,8 +217,11 @@ def welch_ci(a: list[float], b: list[float]) -> tuple[float, float]:
 
     x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     vx, vy = x.var(ddof=1) / x.size, y.var(ddof=1) / y.size
+    difference = float(x.mean() - y.mean())
+    if vx + vy == 0:  # every seed of both scored the same (queue's never-lined-up -60.00)
+        return difference, 0.0
     dof = (vx + vy) ** 2 / (vx**2 / (x.size - 1) + vy**2 / (y.size - 1))
-    return float(x.mean() - y.mean()), float(stats.t.ppf(0.975, dof) * np.sqrt(vx + vy))
+    return difference, float(stats.t.ppf(0.975, dof) * np.sqrt(vx + vy))
 
 
 def pooled_scores(results: list[CellResult], agents: int) -> np.ndarray:
