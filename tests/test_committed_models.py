@@ -8,8 +8,8 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix``,
 ``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn``,
 ``baselines/magent_tiger_qmix``, the second training seeds ``baselines/magent_tiger_qmix/seed1``
-and ``magent_tiger/seed1``, ``magent_queue``, ``baselines/magent_queue_qmix`` and
-``baselines/magent_queue_vdn``: at 9fa5f8f).
+and ``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
+``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -136,6 +136,10 @@ BEFORE = {
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",
         "f6bfe13cbf6b7af045c47020bb557531a0da950eedeb6bbf989406136b7ffc96",
+    ),
+    "magent_queue/agents2_20": (
+        "c10279ff66498ec6164e44627c5565f0f32a95bfc81122d99ebad1684bb26667",
+        "2c4dae05c074ac962cc91edf326bb9ec6b472707fa018d6d9221330418899414",
     ),
     "magent_tiger": (
         "d6ab7da2424be1df56d52ceb79d46452c041947cbb464e17de54815df11dec39",
