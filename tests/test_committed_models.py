@@ -7,8 +7,9 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_pursuit_iql``: at 092e8d6; ``magent_tiger``: at 38700d9;
 ``baselines/magent_pursuit_vdn``, ``baselines/magent_pursuit_qmix``,
 ``baselines/magent_pursuit_coma``, ``baselines/magent_tiger_vdn``,
-``baselines/magent_tiger_qmix``, the second training seeds ``baselines/magent_tiger_qmix/seed1``
-and ``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
+``baselines/magent_tiger_qmix``, the further training seeds
+``baselines/magent_tiger_qmix/seed1``, ``baselines/magent_tiger_qmix/seed2`` and
+``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
 ``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
@@ -108,6 +109,10 @@ BEFORE = {
     "baselines/magent_tiger_qmix/seed1": (
         "6f5adb517b7428100f0b8f503e8e387fa9fc4a90e0026b5fbbb1210451012007",
         "ec19394ef04a983232533c3ae448d92422bd28773d93725eaa4d2b7e74b65388",
+    ),
+    "baselines/magent_tiger_qmix/seed2": (
+        "652c9ff2ccebe749ed35fcc64deb56a10b90c56859b7a074fe5ad272dfe11da8",
+        "f45c0265fb2f571f8bcb622a9d412f759aa70afee041aaded7a1ee78c3fbe776",
     ),
     "baselines/magent_tiger_vdn": (
         "3d1b2ef86d0e05f0a91e5e906cb901ef6cf405fbbffac174286337937e2878ff",

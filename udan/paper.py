@@ -131,6 +131,11 @@ CONTROL = (
     ("UDAN, no messages", "hidden_goal/no_messages"),
     ("IQL", "hidden_goal/iql"),
 )
+#: Tries beside a MAgent scenario's models, each a deviation its card documents: (label,
+#: folder, the paper's algorithm key in TABLE_II).
+MAGENT_TRIES = {
+    "queue": (("UDAN, small fleets in training (a deviation)", "magent_queue/agents2_20", "udan"),),
+}
 #: MAgent scenario -> (label, folder, the paper's algorithm key in TABLE_II) of its models.
 MAGENT = {
     scenario: tuple(
@@ -143,6 +148,7 @@ MAGENT = {
             ("COMA", "baselines/magent_{}_coma", "coma"),
         )
     )
+    + MAGENT_TRIES.get(scenario, ())
     for scenario in ("pursuit", "tiger", "queue")
 }
 #: Each scenario's scripted reference row beside its UDAN (``udan-eval --policy NAME``): policy
