@@ -16,6 +16,7 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,16 @@ def planned_counts(cfg: TrainConfig, max_steps: int) -> dict[str, int]:
     }
 
 
+def _seconds_per_call(play: Callable[[], None], least: int) -> tuple[float, int]:
+    """Wall seconds per call of ``play``, called at least ``least`` times and for at least
+    ``LEAST_TIMED_S``; and how many calls that took."""
+    calls, started = 0, time.perf_counter()
+    while calls < least or time.perf_counter() - started < LEAST_TIMED_S:
+        play()
+        calls += 1
+    return (time.perf_counter() - started) / calls, calls
+
+
 def calibrate(cfg: TrainConfig) -> dict:
     """Measure the cost of ``cfg``'s rollouts, updates and checkpoint saves; project the run."""
     if cfg.algo == "coma":
@@ -81,20 +92,19 @@ def calibrate(cfg: TrainConfig) -> dict:
     actor = training_actor(cfg, model, env)
     rng = np.random.default_rng(cfg.seed)
     has_state = model.spec.state_dim > 0
-    replay.add(rollout(timed, actor, cfg.eps_start, rng, has_state))
-    timed.seconds = 0.0
-    timed_rollouts, started = 0, time.perf_counter()
-    while timed_rollouts < rollouts or time.perf_counter() - started < LEAST_TIMED_S:
+
+    def play_rollout() -> None:
         replay.add(rollout(timed, actor, cfg.eps_start, rng, has_state))
-        timed_rollouts += 1
-    rollout_s = (time.perf_counter() - started) / timed_rollouts
-    env_step_s = timed.seconds / (timed_rollouts * env.batch * max_steps)
-    update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
-    timed_updates, started = 0, time.perf_counter()
-    while timed_updates < TIMED_UPDATES or time.perf_counter() - started < LEAST_TIMED_S:
+
+    def play_update() -> None:
         update(model, target, optim, replay.sample(cfg.batch_episodes, rng), cfg)
-        timed_updates += 1
-    update_s = (time.perf_counter() - started) / timed_updates
+
+    play_rollout()
+    timed.seconds = 0.0
+    rollout_s, timed_rollouts = _seconds_per_call(play_rollout, rollouts)
+    env_step_s = timed.seconds / (timed_rollouts * env.batch * max_steps)
+    play_update()
+    update_s, timed_updates = _seconds_per_call(play_update, TIMED_UPDATES)
     replay_bytes = sum(a.nbytes for a in replay.data.values()) / replay.capacity
     replay_bytes *= cfg.buffer_episodes
     with tempfile.TemporaryDirectory() as folder:
