@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from udan.evaluate import evaluate, main, welch_ci
+from udan.checkpoint import load_model
+from udan.evaluate import CheckpointPolicy, evaluate, main, welch_ci
 from udan.policies import OraclePolicy, RandomPolicy
 
 EVAL = [str(Path(sys.executable).with_name("udan-eval"))]
@@ -85,6 +86,9 @@ def test_surround_prints_the_target_table_too(capsys):
         (["--env", "magent/tiger", "--prey-alertness", "0.5"], "is for magent/pursuit, not"),
         (["--prey-alertness", "0.5"], "is for magent/pursuit, not arena/find_water"),
         (["--env", "magent/pursuit", "--prey-alertness", "2"], "must lie in [0, 1]"),
+        (["--map-size", "30"], "--map-size is for MAgent tasks, not arena/find_water"),
+        (["--env", "magent/pursuit", "--map-size", "4"], "map_size must be an int >= 5"),
+        (["--env", "magent/pursuit", "--map-size", "6"], "do not fit"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(args, message):
@@ -124,6 +128,40 @@ def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
     row = next(line for line in out.splitlines() if line.startswith("| 2 | "))
     base, other, delta = (float(cell.split()[0]) for cell in row.split("|")[2:5])
     assert delta == pytest.approx(other - base, abs=0.011)
+
+
+def test_map_size_plays_a_magent_checkpoint_on_another_map(tmp_path, capsys):
+    """A model trained on one map, played on another (the paper's, with 0) and on its own."""
+    from udan.train import TrainConfig, train
+
+    path = train(
+        TrainConfig(
+            env="magent/pursuit",
+            agents="4",
+            map_size=12,
+            max_steps=40,
+            steps=640,
+            n_envs=4,
+            batch_episodes=4,
+            hidden=16,
+            out=str(tmp_path / "r"),
+        ),
+        log=lambda *a, **k: None,
+    )
+    model, _ = load_model(path)
+    scores = {}
+    for size, options in (("6", {"map_size": 6}), ("0", {}), (None, {"map_size": 12})):
+        args = [str(path), "--episodes", "4", "--csv", str(tmp_path / "cells.csv")]
+        assert main(args + (["--map-size", size] if size else [])) == 0
+        capsys.readouterr()
+        played = evaluate(
+            "magent/pursuit", CheckpointPolicy(model), (4, 4), (0, 0), 4, 0,
+            {"max_steps": 40, **options},
+        )  # fmt: skip
+        row = (tmp_path / "cells.csv").read_text().splitlines()[1]
+        assert f",{played[0].agent_score:.4f}," in row, (size, row)
+        scores[size] = played[0].scores.tolist()
+    assert len({tuple(each) for each in scores.values()}) == 3  # the three maps play apart
 
 
 @pytest.mark.parametrize(

@@ -195,7 +195,10 @@ SAME_SHARE = ("leaders=random-half", "leaders=top-half")
 
 
 def mean_ci(values: np.ndarray) -> tuple[float, float]:
-    """Mean of ``values`` and the half-width of its 95 % CI."""
+    """Mean of ``values`` and the half-width of its 95 % CI (NaN from one value: no spread to
+    measure, and no numpy warning on the terminal)."""
+    if values.size < 2:
+        return float(values.mean()), float("nan")
     return float(values.mean()), float(Z95 * values.std(ddof=1) / np.sqrt(values.size))
 
 
@@ -500,6 +503,12 @@ def main(argv: list[str] | None = None) -> int:
         help="magent/pursuit: the chance a sheep that sees a wolf flees rather than wanders "
         "(default 1, the task; lower, the sheep of a --prey-curriculum training)",
     )
+    parser.add_argument(
+        "--map-size",
+        type=int,
+        help="MAgent tasks: play on a map of this side (default: the checkpoints'; 0: the "
+        "scenario's own, the paper's), e.g. a model trained on a smaller map on the paper's",
+    )
     parser.add_argument("--episodes", type=int, default=100, help="episodes per cell")
     parser.add_argument("--seed", type=int, default=0, help="seed of the layouts and the policy")
     parser.add_argument("--csv", type=Path, help="write the cells to this CSV (one source only)")
@@ -572,6 +581,11 @@ def main(argv: list[str] | None = None) -> int:
             if env_name != "magent/pursuit":
                 raise EnvConfigError(f"--prey-alertness is for magent/pursuit, not {env_name}")
             options = {**options, "prey_alertness": args.prey_alertness}
+        if args.map_size is not None:
+            if arena:
+                raise EnvConfigError(f"--map-size is for MAgent tasks, not {env_name}")
+            options = {key: v for key, v in options.items() if key != "map_size"}
+            options |= {"map_size": args.map_size} if args.map_size else {}
         if not arena and trained is None and not args.agents:  # a reference policy alone
             trained = make_vec(env_name, batch=1, **options).config.agents  # the scenario's
         agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
