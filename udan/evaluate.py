@@ -25,6 +25,7 @@ from udan.leaders import check_leaders, format_leaders, leader_table
 from udan.paths import FolderError, ensure_folder
 from udan.policies import POLICIES, Policy
 from udan.probe import check_probe, format_probe, probe
+from udan.tags import check_tags, format_tags, tag_values
 
 
 @dataclass
@@ -389,14 +390,14 @@ def plot_comparison(tables: dict[str, list[CellResult]], env_name: str, path: Pa
 
 
 def _probed_model(args: argparse.Namespace, sources: list):
-    """The one checkpoint's model that ``--ablate`` / ``--probe`` / ``--leaders`` act on (None
-    without them); refuses what cannot be ablated, probed or inspected."""
-    if not args.ablate and not args.probe and not args.leaders:
+    """The one checkpoint's model that ``--ablate`` / ``--probe`` / ``--leaders`` / ``--tags``
+    act on (None without them); refuses what cannot be ablated, probed or inspected."""
+    if not args.ablate and not args.probe and not args.leaders and not args.tags:
         return None
     policies = [policy for _, _, policy in sources if isinstance(policy, CheckpointPolicy)]
     if len(sources) != 1 or len(policies) != 1:
         raise EnvConfigError(
-            "--ablate/--probe/--leaders take exactly one checkpoint and no --policy"
+            "--ablate/--probe/--leaders/--tags take exactly one checkpoint and no --policy"
         )
     spec = policies[0].model.spec
     try:
@@ -408,6 +409,8 @@ def _probed_model(args: argparse.Namespace, sources: list):
         check_probe(spec, sources[0][1], args.episodes)
     if args.leaders:
         check_leaders(spec)
+    if args.tags:
+        check_tags(spec, sources[0][1])
     return policies[0].model
 
 
@@ -543,6 +546,12 @@ def main(argv: list[str] | None = None) -> int:
         "is in and how far its message reaches (udan.leaders)",
     )
     parser.add_argument(
+        "--tags",
+        action="store_true",
+        help="MAgent pursuit and tiger: random wolves' attacks that paid against those that did "
+        "not, as the checkpoint values them (udan.tags)",
+    )
+    parser.add_argument(
         "--workers",
         type=int,
         default=0,
@@ -590,7 +599,7 @@ def main(argv: list[str] | None = None) -> int:
             trained = make_vec(env_name, batch=1, **options).config.agents  # the scenario's
         agents = parse_range(args.agents or ("1-5" if arena else trained), "--agents")
         obstacles = parse_range(args.obstacles or ("0-9" if arena else "0"), "--obstacles")
-        make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options)  # fits?
+        fits = make_vec(env_name, batch=1, agents=agents, obstacles=obstacles, **options).config
         if args.policy == "liner" and obstacles != (0, 0):
             raise EnvConfigError("--policy liner lines up along a wall: it needs --obstacles 0")
         if args.csv is not None and len(sources) > 1:
@@ -610,15 +619,21 @@ def main(argv: list[str] | None = None) -> int:
             if args.leaders
             else []
         )
+        tags = (
+            tag_values(probed, env_name, agents, args.episodes, args.seed, **options)
+            if args.tags
+            else []
+        )
     except (EnvConfigError, CheckpointError, FolderError, ScaleError) as err:
         print(f"udan-eval: error: {err}", file=sys.stderr)
         return 2
     reports = [curves] if curves else []  # markdown tables written to --out/report.md
+    task = "" if args.prey_alertness is None else f", sheep alertness {args.prey_alertness:g}"
+    task += "" if args.map_size is None else f", {fits.map_size}×{fits.map_size} map"
     for label, results in tables.items():
-        sheep = "" if args.prey_alertness is None else f", sheep alertness {args.prey_alertness:g}"
         title = (
             f"{env_name}, {label}: average agent score "
-            f"({args.episodes} episodes per cell, seed {args.seed}{sheep})"
+            f"({args.episodes} episodes per cell, seed {args.seed}{task})"
         )
         print(
             format_table(results, "agent_score", title)
@@ -668,6 +683,12 @@ def main(argv: list[str] | None = None) -> int:
     if leaders:
         title = f"{env_name}, {sources[0][0]}: leaders against ΔQ (eq. 4) at group formations"
         reports.append(format_leaders(leaders, title))
+    if tags:
+        title = (
+            f"{env_name}, {sources[0][0]}: what it makes of random attacks "
+            f"({args.episodes} episodes per N{task})"
+        )
+        reports.append(format_tags(tags, title))
     for report in reports:
         print(report, end="\n\n")
     if reports and args.out is not None:
