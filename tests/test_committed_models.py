@@ -10,7 +10,8 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_tiger_qmix``, the further training seeds
 ``baselines/magent_tiger_qmix/seed1``, ``baselines/magent_tiger_qmix/seed2`` and
 ``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
-``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f).
+``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f; the pursuit tries
+on a 30×30 map ``baselines/magent_pursuit_iql/map30`` and ``magent_pursuit/map30``: at 01c9298).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -86,6 +87,10 @@ BEFORE = {
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "cba476b48fe0a9e5705e9412b08678f9d6e05fbb8d0c369577057218134352c7",
     ),
+    "baselines/magent_pursuit_iql/map30": (
+        "116a6e8614810d97b0c779cdcaa7189c440246e784e690b89b64d2ff701bb2f2",
+        "d44af6a97bfddc4c4a567ac35e683f8bd63f3b3e4459fcd8f0dc8e21e2ed442e",
+    ),
     "baselines/magent_pursuit_qmix": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "fa40fa54fb97d6a79a5879ac0dae2c97ff376bb86911bfc0e6067aa0d673c411",
@@ -137,6 +142,10 @@ BEFORE = {
     "magent_pursuit": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "26f358777635dacfc64c6e7de64e1ca594bdd4219b821e3cecd7096f1954bfd1",
+    ),
+    "magent_pursuit/map30": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "2eb9fe5edbfcb7385c5d1a48a18fb63e6d499690bc81914fa859eecca0f0b71f",
     ),
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",

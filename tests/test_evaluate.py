@@ -104,20 +104,16 @@ def test_bad_input_is_one_line_and_exit_code_2(args, message):
     assert "Traceback" not in proc.stderr
 
 
-def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
+def _tiny_checkpoint(tmp_path: Path, **config) -> Path:
+    """A checkpoint of a tiny training run (``config``: TrainConfig fields) in ``tmp_path/r``."""
     from udan.train import TrainConfig, train
 
-    path = train(
-        TrainConfig(
-            env="arena/surround",
-            steps=200,
-            n_envs=4,
-            batch_episodes=4,
-            hidden=16,
-            out=str(tmp_path / "r"),
-        ),
-        log=lambda *a, **k: None,
-    )
+    small = {"n_envs": 4, "batch_episodes": 4, "hidden": 16, "out": str(tmp_path / "r")}
+    return train(TrainConfig(**small, **config), log=lambda *a, **k: None)
+
+
+def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
+    path = _tiny_checkpoint(tmp_path, env="arena/surround", steps=200)
     args = [str(path), "--policy", "random", "--agents", "2", "--obstacles", "0", "--episodes", "2"]
     assert main(args) == 0
     out = capsys.readouterr().out
@@ -132,21 +128,8 @@ def test_a_reference_policy_follows_the_checkpoints_env(tmp_path, capsys):
 
 def test_map_size_plays_a_magent_checkpoint_on_another_map(tmp_path, capsys):
     """A model trained on one map, played on another (the paper's, with 0) and on its own."""
-    from udan.train import TrainConfig, train
-
-    path = train(
-        TrainConfig(
-            env="magent/pursuit",
-            agents="4",
-            map_size=12,
-            max_steps=40,
-            steps=640,
-            n_envs=4,
-            batch_episodes=4,
-            hidden=16,
-            out=str(tmp_path / "r"),
-        ),
-        log=lambda *a, **k: None,
+    path = _tiny_checkpoint(
+        tmp_path, env="magent/pursuit", agents="4", map_size=12, max_steps=40, steps=640
     )
     model, _ = load_model(path)
     scores = {}

@@ -76,7 +76,7 @@ def test_what_is_not_committed_is_not_trained_yet_never_a_number(written):
     assert f"{TABLE_VI[14][0]:.2f}" not in table_vi  # nothing of ours to set beside it
     magent = text[text.index("## Table II") :]
     rows = [line for line in magent.splitlines() if line.startswith("| pursuit |")]
-    assert len(rows) == 5 and all(NOT_TRAINED in row for row in rows)
+    assert len(rows) == 7 and all(NOT_TRAINED in row for row in rows)  # five learners, two tries
     assert f"{TABLE_II['qmix']['15']:g} (trained on 15)" in magent
     assert "Fig. 5 (learning curves): not trained yet." in magent
 
@@ -122,12 +122,17 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
                 log=quiet,
             )
     pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
-    train(
-        TrainConfig(
-            env="magent/pursuit", steps=288, out=str(models / "magent_pursuit"), **pursuit, **tiny
-        ),
-        log=quiet,
-    )
+    for folder, map_size in (("magent_pursuit", 12), ("magent_pursuit/map30", 8)):  # a try
+        train(
+            TrainConfig(
+                env="magent/pursuit",
+                steps=288,
+                out=str(models / folder),
+                **{**pursuit, "map_size": map_size},
+                **tiny,
+            ),
+            log=quiet,
+        )
     out = tmp_path / "results.md"
     assert main(["--models", str(models), "--out", str(out), "--episodes", "2"]) == 0
     text = out.read_text()
@@ -141,11 +146,43 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
         )  # on the UDAN's sizes and task options
         assert re.search(rf"\| {tested} \| -?\d+\.\d\d \[", scripted), scripted
     assert not any(line.startswith("| tiger | scripted") for line in text.splitlines())
-    for scenario, trained in (("queue", "1-3"), ("pursuit", "2-3")):
+    for scenario, trained in (
+        ("queue", "1-3"),
+        ("pursuit", "2-3"),
+        ("pursuit (`magent_pursuit/map30`)", "2-3"),
+    ):
         shuffle = text.index(f"**{scenario}: UDAN with shuffled messages, paired")
         assert f"| {trained} pooled |" in text[shuffle:].split("\n\n", 2)[1]
+    _a_try_on_its_own_map_is_played_there(text, models)
     _the_seeds_table_is_each_seed_played_alone(text, models)
     assert "**pursuit: across training seeds**" not in text  # one seed: no table
+
+
+def _a_try_on_its_own_map_is_played_there(text: str, models: Path) -> None:
+    """A try trained on another map than the scenario's UDAN is played on its own map, beside the
+    scripted chaser on that map, and not set against the paper's number there; then on the
+    paper's map, where it is."""
+    from udan.policies import ChaserPolicy
+
+    def pooled(policy, map_size: int = 8) -> str:
+        options = {"map_size": map_size, "max_steps": 12}
+        cells = evaluate("magent/pursuit", policy, (2, 3), (0, 0), 10, 0, options)
+        return f"| {np.concatenate([c.scores for c in cells]).mean():.2f} ["
+
+    lines = text.splitlines()
+    row = next(line for line in lines if line.startswith("| pursuit | UDAN, 30×30 map"))
+    assert "| 2-3 | 2-3 |" in row and "| — (the paper's task: 12×12 map, 12 steps) |" in row
+    model, _ = load_model(models / "magent_pursuit/map30/checkpoint.pt")
+    assert pooled(CheckpointPolicy(model)) in row
+    there = lines[lines.index(row) + 1]
+    assert there.startswith(
+        "| pursuit | UDAN, 30×30 map, slow ε, sheep curriculum (a deviation), played on the "
+        "paper's 12×12 map, 12 steps | 2-3 | 2-3 | "
+    )
+    assert pooled(CheckpointPolicy(model), 12) in there and there.endswith("71 (trained on 8-20) |")
+    chaser = "| pursuit | scripted chaser (no learning, no messages), on the 8×8 map, 12 steps"
+    scripted = next(line for line in lines if line.startswith(chaser))
+    assert scripted.startswith(chaser + " | — | 2-3 | " + pooled(ChaserPolicy(0))[2:])
 
 
 def _the_seeds_table_is_each_seed_played_alone(text: str, models: Path) -> None:

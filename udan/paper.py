@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from udan.envs import EnvConfigError
+from udan.envs import EnvConfigError, make_vec
 from udan.envs.errors import parse_range
 from udan.evaluate import (
     CellResult,
@@ -132,8 +132,17 @@ CONTROL = (
     ("IQL", "hidden_goal/iql"),
 )
 #: Tries beside a MAgent scenario's models, each a deviation its card documents: (label,
-#: folder, the paper's algorithm key in TABLE_II).
+#: folder, the paper's algorithm key in TABLE_II). One trained on another map is played on its
+#: own and on the paper's.
 MAGENT_TRIES = {
+    "pursuit": (
+        ("UDAN, 30×30 map, slow ε, sheep curriculum (a deviation)", "magent_pursuit/map30", "udan"),
+        (
+            "IQL, 30×30 map, slow ε, sheep curriculum (a deviation)",
+            "baselines/magent_pursuit_iql/map30",
+            "iql",
+        ),
+    ),
     "queue": (("UDAN, small fleets in training (a deviation)", "magent_queue/agents2_20", "udan"),),
 }
 #: MAgent scenario -> (label, folder, the paper's algorithm key in TABLE_II) of its models.
@@ -366,18 +375,27 @@ class Settings:
 
 
 def _play(
-    loaded: Loaded | None, env: str, agents, obstacles, settings: Settings, ablate=None, episodes=0
+    loaded: Loaded | None,
+    env: str,
+    agents,
+    obstacles,
+    settings: Settings,
+    ablate=None,
+    episodes=0,
+    task_of: Loaded | None = None,
 ) -> list[CellResult] | None:
-    """``loaded``'s evaluation as udan-eval seeds it (None without a model); seeded, so the same
-    arguments give the same results and a second call returns the first's."""
+    """``loaded``'s evaluation as udan-eval seeds it (None without a model), on the task options
+    it was trained with or on those of ``task_of``; seeded, so the same arguments give the same
+    results and a second call returns the first's."""
     if loaded is None:
         return None
     episodes = episodes or settings.episodes
-    key = (loaded.folder, env, tuple(agents), tuple(obstacles), ablate, episodes)
+    options = (task_of or loaded).options()
+    key = (loaded.folder, env, tuple(agents), tuple(obstacles), ablate, episodes, str(options))
     if key not in settings.played:
         policy = CheckpointPolicy(loaded.model, ablate, settings.seed)
         settings.played[key] = evaluate(
-            env, policy, agents, obstacles, episodes, settings.seed, loaded.options()
+            env, policy, agents, obstacles, episodes, settings.seed, options
         )
     return settings.played[key]
 
@@ -509,7 +527,6 @@ def arena_section(
 def control_section(settings: Settings) -> tuple[str, list[Loaded]]:
     """hidden_goal: scores beside the proven no-message bound and the oracle, the controls, and
     the shuffled messages' cost."""
-    from udan.envs import make_vec
     from udan.envs.hidden_goal import no_message_bound, oracle_score
 
     env, agents, obstacles = "arena/hidden_goal", (2, 8), (0, 0)
@@ -563,6 +580,13 @@ def _pooled(results: list[CellResult]) -> str:
     """Every episode's score of ``results`` pooled: "mean [95 % CI]"."""
     mean, half = mean_ci(_scores(results))
     return f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}]"
+
+
+def _task(loaded: Loaded) -> str:
+    """The task a MAgent model was trained on, in words: "100×100 map, 300 steps"."""
+    env, agents = loaded.checkpoint["env"], loaded.trained_agents
+    config = make_vec(env, batch=1, agents=agents, **loaded.options()).config
+    return f"{config.map_size}×{config.map_size} map, {config.max_steps} steps"
 
 
 def _seeds(models: Path, label: str, folder: str) -> list[Loaded]:
@@ -661,6 +685,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         udan = loaded["UDAN"]
         per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]] = {}
         seed_curves: list[tuple[str, str]] = []
+        other_tasks: list[Loaded] = []  # tries on task options of their own (a smaller map)
         for (label, folder, algo), model in zip(entries, loaded.values(), strict=True):
             paper = TABLE_II.get(algo, {}) if scenario == "pursuit" else {}
             theirs = ", ".join(f"{v:g} (trained on {n})" for n, v in paper.items())
@@ -672,13 +697,25 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             tested = (udan or model).trained_agents
             env, agents = model.checkpoint["env"], parse_range(tested, "agents")
             results = _play(model, env, agents, (0, 0), settings, episodes=settings.magent_episodes)
+            elsewhere = udan is not None and model.options() != udan.options()
+            here = f"— (the paper's task: {_task(udan)})" if elsewhere else theirs
             out.append(
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
-                f"{_pooled(results)} | {theirs} |"
+                f"{_pooled(results)} | {here} |"
             )
-            if model is udan and udan.model.spec.communicates:
+            if elsewhere:
+                other_tasks.append(model)
+                there = _play(
+                    model, env, agents, (0, 0), settings, None, settings.magent_episodes, udan
+                )
+                out.append(
+                    f"| {scenario} | {label}, played on the paper's {_task(udan)} | "
+                    f"{model.trained_agents} | {tested} | {_pooled(there)} | {theirs} |"
+                )
+            if model.model.spec.communicates:
+                name = scenario if model is udan else f"{scenario} (`{folder}`)"
                 shuffle = _shuffle_table(
-                    udan, results, env, agents, (0, 0), settings, scenario, settings.magent_episodes
+                    model, results, env, agents, (0, 0), settings, name, settings.magent_episodes
                 )
                 shuffles += ["", shuffle]
             seeds = _seeds(settings.models, label, folder)
@@ -690,8 +727,13 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 per_seed[label].append((other, played))
             everything += seeds
             seed_curves += [(label, other.folder) for other in seeds]
-        if udan is not None:
+        tasks: dict[str, Loaded] = {}  # one row per task: the UDAN's, then the tries'
+        for task in [udan, *other_tasks] if udan is not None else []:
+            tasks.setdefault(str(task.options()), task)
+        for task in tasks.values():
             policy, label = SCRIPTED[scenario]
+            if task is not udan:
+                label = f"{label}, on the {_task(task)}"
             results = evaluate(
                 f"magent/{scenario}",
                 POLICIES[policy](settings.seed),
@@ -699,7 +741,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 (0, 0),
                 settings.magent_episodes,
                 settings.seed,
-                udan.options(),
+                task.options(),
             )
             out.append(
                 f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
