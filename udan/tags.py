@@ -29,9 +29,9 @@ class TagRow:
     paid: int
     """Attacks whose step's reward was above 0."""
     q_paid: float
-    """Mean value the checkpoint gave the attacks that paid, as it chose."""
+    """Mean Q the checkpoint gave the attacks that paid."""
     q_unpaid: float
-    """... and the attacks that did not."""
+    """Mean Q it gave the attacks that did not."""
     paid_greedy: float
     """Share of the paying attacks that were the checkpoint's own greedy action."""
     paid_above_moves: float
