@@ -11,7 +11,8 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_tiger_qmix/seed1``, ``baselines/magent_tiger_qmix/seed2`` and
 ``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
 ``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f; the pursuit tries
-on a 30×30 map ``baselines/magent_pursuit_iql/map30`` and ``magent_pursuit/map30``: at 01c9298).
+on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursuit_vdn/map30``,
+``baselines/magent_pursuit_qmix/map30`` and ``magent_pursuit/map30``: at 01c9298).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -95,6 +96,10 @@ BEFORE = {
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "fa40fa54fb97d6a79a5879ac0dae2c97ff376bb86911bfc0e6067aa0d673c411",
     ),
+    "baselines/magent_pursuit_qmix/map30": (
+        "2f28546f6b891553aec80663da0a913ec63068b60239db86e1ad3e2b491a076d",
+        "a970300573fb063bffad5deea90f9efad2684f3e651124408733a595a4829a5e",
+    ),
     "baselines/magent_pursuit_vdn": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "d640a65ab3f9a3c467c224434f313a984024043a070f64f809901cdcd1a0a329",
@@ -139,13 +144,17 @@ BEFORE = {
         "2782148e79acb10fcff62e1dd4771bade2128483a11b5acccdc0869117d25cbe",
         "6a1c8be788bdd9a1f6d3effcc3ff5341037776903c6aaf09831c8ebccf08e1fe",
     ),
+    "baselines/magent_pursuit_vdn/map30": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "e83cb362e54e76c9b1e0aff8858018f5f5fa9f996279abeeff92dfe28a85e226",
+    ),
     "magent_pursuit": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "26f358777635dacfc64c6e7de64e1ca594bdd4219b821e3cecd7096f1954bfd1",
     ),
     "magent_pursuit/map30": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
-        "2eb9fe5edbfcb7385c5d1a48a18fb63e6d499690bc81914fa859eecca0f0b71f",
+        "1651a7d04d6fb42b8d3a48c3f5cfb6a4166b6eeab45f1aa577a29811f3c38e04",
     ),
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",

@@ -1,6 +1,8 @@
 """udan-eval --tags: what a checkpoint makes of random attacks, counted right and refused where
 it cannot apply."""
 
+import math
+
 import pytest
 
 from udan.checkpoint import load_model
@@ -33,13 +35,34 @@ def test_the_attacks_add_up_to_what_the_wolves_scored(tmp_path):
         assert row.paid_greedy <= row.paid_above_moves  # the greedy action beats every move
 
 
+@pytest.mark.parametrize("algo", ["vdn", "iql", "udan", "qmix"])
+def test_the_mixer_gradient_is_what_each_mixer_passes_back(tmp_path, algo):
+    """VDN's sum passes back exactly 1 to every agent's Q; IQL has no Q_tot (NaN), nor QMIX at
+    another N or on another map than its hypernetwork mixes; UDAN's and QMIX's non-negative
+    weights pass back a positive share."""
+    agents = "3" if algo == "qmix" else "2-3"
+    model, _ = load_model(_trained(tmp_path, "magent/pursuit", algo, agents))
+    rows = tag_values(model, "magent/pursuit", (2, 3), 2, 0, map_size=12, max_steps=20)
+    gradient = {row.agents: row.mixer_gradient for row in rows}
+    (other_map,) = tag_values(model, "magent/pursuit", (3, 3), 1, 0, map_size=7, max_steps=5)
+    assert math.isnan(other_map.mixer_gradient) == (algo in ("iql", "qmix"))
+    if algo == "vdn":
+        assert gradient == {2: pytest.approx(1.0), 3: pytest.approx(1.0)}
+    elif algo == "iql":
+        assert all(math.isnan(g) for g in gradient.values())
+    elif algo == "qmix":
+        assert math.isnan(gradient[2]) and 0 < gradient[3] < math.inf
+    else:
+        assert all(0 < g < math.inf for g in gradient.values())
+
+
 def test_the_cli_prints_a_row_per_fleet_size(tmp_path, capsys):
     path = _trained(tmp_path, "magent/pursuit")
     args = [str(path), "--tags", "--agents", "2-3", "--episodes", "2", "--map-size", "8"]
     assert main([*args, "--prey-alertness", "0"]) == 0
     out = capsys.readouterr().out
     assert "what it makes of random attacks (2 episodes per N, sheep alertness 0, 8×8 map)" in out
-    assert "| 2 | " in out and "| 3 | " in out
+    assert "| 2 | " in out and "| 3 | " in out and "| ∂Q_tot/∂Q_i |" in out
 
 
 @pytest.mark.parametrize(

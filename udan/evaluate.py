@@ -549,7 +549,8 @@ def main(argv: list[str] | None = None) -> int:
         "--tags",
         action="store_true",
         help="MAgent pursuit and tiger: random wolves' attacks that paid against those that did "
-        "not, as the checkpoint values them (udan.tags)",
+        "not, as the checkpoint values them, and what its mixer passes back to each agent's Q "
+        "(udan.tags)",
     )
     parser.add_argument(
         "--workers",

@@ -138,6 +138,16 @@ MAGENT_TRIES = {
     "pursuit": (
         ("UDAN, 30×30 map, slow ε, sheep curriculum (a deviation)", "magent_pursuit/map30", "udan"),
         (
+            "QMIX, 30×30 map, slow ε, sheep curriculum (a deviation)",
+            "baselines/magent_pursuit_qmix/map30",
+            "qmix",
+        ),
+        (
+            "VDN, 30×30 map, slow ε, sheep curriculum (a deviation)",
+            "baselines/magent_pursuit_vdn/map30",
+            "vdn",
+        ),
+        (
             "IQL, 30×30 map, slow ε, sheep curriculum (a deviation)",
             "baselines/magent_pursuit_iql/map30",
             "iql",

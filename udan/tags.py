@@ -5,7 +5,9 @@ every step and says what each action is worth. Of the random attacks, those whos
 (reward above 0: a tag, the wolf's +1 against the attack's −0.2) are set against those that did
 not: a learner that has learnt what a tag is worth rates an attack that is about to hit above
 one that is not, and above the best move. Equal ratings mean the tags in its replay taught it
-nothing yet, whatever the exploration brought in.
+nothing yet, whatever the exploration brought in. For a learner trained on the team's reward,
+the row also says how much of a change in Q_tot its mixer passes back to each agent's chosen Q
+(VDN's sum: 1), the share of the team's TD error each wolf's Q is moved by.
 """
 
 from __future__ import annotations
@@ -38,6 +40,9 @@ class TagRow:
     """Share of the paying attacks rated above every move."""
     returned: float
     """The random wolves' summed episode returns (what the attacks and tags add up to)."""
+    mixer_gradient: float
+    """Mean ∂Q_tot/∂Q_i of the present agents' chosen Q (NaN where the model has no Q_tot: IQL,
+    QMIX at another N or on another map than it mixes)."""
 
 
 def check_tags(spec, env_name: str) -> None:
@@ -62,15 +67,18 @@ def tag_values(
         attack = np.array([name.startswith("attack") for name in env.spec.actions])
         actor = Actor(model, env.batch, env.slots)
         rng = np.random.default_rng(seed)
-        paid_q, unpaid_q, greedy, above = [], [], [], []
+        paid_q, unpaid_q, greedy, above, gradient = [], [], [], [], []
+        mixes = _has_q_tot(model.spec, env)
         done = np.zeros(env.batch, dtype=bool)
         while not done.all():
             q = actor.values(env.observe(), env.present, env.pos, env.joined).numpy()
             q = q.reshape(env.batch, env.slots, -1)
             actions = rng.integers(0, len(attack), size=(env.batch, env.slots))
             attacked = attack[actions] & env.present
-            _, reward, done = env.step(actions)
             chosen = np.take_along_axis(q, actions[..., None], -1)[..., 0]
+            if mixes:
+                gradient.append(_mixer_gradient(model, actor, env, chosen)[env.present])
+            _, reward, done = env.step(actions)
             paid = attacked & (reward > 0)
             paid_q.append(chosen[paid])
             unpaid_q.append(chosen[attacked & ~paid])
@@ -87,9 +95,35 @@ def tag_values(
                 _mean(np.concatenate(greedy)),
                 _mean(np.concatenate(above)),
                 float(env.episode_return.sum()),
+                _mean(np.concatenate(gradient)) if gradient else float("nan"),
             )
         )
     return table
+
+
+def _has_q_tot(spec, env) -> bool:
+    """Whether the model mixes a Q_tot in ``env``: IQL never, QMIX only at the N and on the map
+    (the global state's width) its hypernetwork was trained for."""
+    if spec.algo == "qmix":
+        width = env.global_state().shape[-1]
+        return env.slots == spec.mix_agents and width == spec.state_dim
+    return spec.algo != "iql"
+
+
+def _mixer_gradient(model, actor, env, chosen: np.ndarray) -> np.ndarray:
+    """∂Q_tot/∂Q_i (B, N) at this step: the mixer's weight on each agent's chosen Q."""
+    import torch
+
+    q = torch.from_numpy(chosen.astype(np.float32)).requires_grad_()
+    if model.spec.algo == "qmix":
+        state = torch.from_numpy(env.global_state().astype(np.float32))
+    else:
+        state = torch.zeros(env.batch, 0)
+    feats = actor.feats.view(env.batch, env.slots, -1)
+    with torch.enable_grad():
+        total = model.mix(q, feats, state, torch.from_numpy(env.present)).sum()
+        (grad,) = torch.autograd.grad(total, q)
+    return grad.numpy()
 
 
 def _mean(values: np.ndarray) -> float:
@@ -103,13 +137,14 @@ def format_tags(table: list[TagRow], title: str) -> str:
         f"**{title}**",
         "",
         "| agents | random attacks | paid | Q of those that paid | Q of the others | "
-        "paying attack greedy | paying attack above every move |",
-        "|---|---|---|---|---|---|---|",
+        "paying attack greedy | paying attack above every move | ∂Q_tot/∂Q_i |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for row in table:
         shares = f"{100 * row.paid_greedy:.1f} % | {100 * row.paid_above_moves:.1f} %"
+        mixer = "— (no Q_tot here)" if np.isnan(row.mixer_gradient) else f"{row.mixer_gradient:.3f}"
         lines.append(
             f"| {row.agents} | {row.attacks} | {row.paid} | {row.q_paid:+.3f} | "
-            f"{row.q_unpaid:+.3f} | {shares} |"
+            f"{row.q_unpaid:+.3f} | {shares} | {mixer} |"
         )
     return "\n".join(lines)
