@@ -115,10 +115,8 @@ def _mixer_gradient(model, actor, env, chosen: np.ndarray) -> np.ndarray:
     import torch
 
     q = torch.from_numpy(chosen.astype(np.float32)).requires_grad_()
-    if model.spec.algo == "qmix":
-        state = torch.from_numpy(env.global_state().astype(np.float32))
-    else:
-        state = torch.zeros(env.batch, 0)
+    state = env.global_state() if model.spec.state_dim else np.zeros((env.batch, 0))
+    state = torch.from_numpy(state.astype(np.float32))
     feats = actor.feats.view(env.batch, env.slots, -1)
     with torch.enable_grad():
         total = model.mix(q, feats, state, torch.from_numpy(env.present)).sum()
