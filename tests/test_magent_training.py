@@ -419,6 +419,8 @@ def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(
             "no --workers or --address",
         ),
         (["--env", "magent/pursuit", "--explore", "wild"], "--explore must be one of"),
+        (["--env", "magent/pursuit", "--mixer-init", "big"], "--mixer-init must be one of"),
+        (["--env", "magent/pursuit", "--algo", "vdn", "--mixer-init", "sum"], "vdn has none"),
         (["--env", "magent/queue", "--explore", "balanced"], "tasks with attacks"),
         (["--env", "arena/find_water", "--explore", "balanced"], "tasks with attacks"),
         (

@@ -19,6 +19,18 @@ def test_mixer_is_monotonic_in_every_q_for_n_1_to_64():
         assert (grad >= 0).all()
 
 
+def test_a_mixer_started_as_a_sum_is_vdn_until_it_learns():
+    mixer = SetMixer(H, 8)
+    mixer.start_as_sum()
+    q = (torch.randn(3, 20) * 4).requires_grad_()
+    mask = torch.rand(3, 20) < 0.7
+    q_tot = mixer(q, torch.randn(3, 20, H), mask)
+    assert torch.allclose(q_tot, q.masked_fill(~mask, 0).sum(1), atol=1e-4)
+    q_tot.sum().backward()
+    assert torch.allclose(q.grad, mask.float())
+    assert mixer.w1.weight.grad.abs().sum() > 0, "the agents' features can still shape the mix"
+
+
 def test_padded_agents_contribute_nothing_to_the_mixer():
     mixer = SetMixer(H, 8)
     q, feats = torch.randn(2, 3), torch.randn(2, 3, H)

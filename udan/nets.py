@@ -155,3 +155,17 @@ class SetMixer(nn.Module):
         w1 = self.w1(feats).abs() * mask[..., None]
         hidden = F.elu((w1 * q.masked_fill(~mask, 0.0)[..., None]).sum(1) + self.b1)
         return hidden @ self.w2.abs() + self.b2
+
+    @torch.no_grad()
+    def start_as_sum(self, offset: float = 100.0) -> None:
+        """Start as VDN: ``Q_tot = sum_i Q_i`` wherever that sum is above ``-offset``.
+
+        Every agent's weight is 1 whatever its feature (W1's rows 0, its bias 1), the hidden
+        units' bias lifts the sum into ELU's linear part and the output's bias takes it off again;
+        gradient then moves the weights away from the sum as training asks.
+        """
+        self.w1.weight.zero_()
+        self.w1.bias.fill_(1.0)
+        self.b1.fill_(offset)
+        self.w2.fill_(1.0 / self.w2.numel())
+        self.b2.fill_(-offset)

@@ -114,6 +114,9 @@ class TrainConfig:
     leader_explore: float = 0.0
     """UDAN: chance that an agent the leader scorer passes over leads anyway in a training
     rollout, so groups, and gradients through the messages, exist before the scorer picks any."""
+    mixer_init: str = "small"
+    """UDAN: how its set mixer starts: small (output weights uniform in [0, 0.1)), or sum
+    (Q_tot = the sum of the agents' Qs, VDN's mixer, from which training moves it)."""
     messages: str = "on"
     """UDAN: on, or off for the no-communication control (no leaders, groups or messages)."""
     explore: str = "uniform"
@@ -579,6 +582,12 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         raise EnvConfigError(
             f"--leader-target must be one of {', '.join(LEADER_TARGETS)}, not {cfg.leader_target!r}"
         )
+    if cfg.mixer_init not in MIXER_INITS:
+        raise EnvConfigError(
+            f"--mixer-init must be one of {', '.join(MIXER_INITS)}, not {cfg.mixer_init!r}"
+        )
+    if cfg.mixer_init != "small" and cfg.algo != "udan":
+        raise EnvConfigError(f"--mixer-init is for udan's set mixer; {cfg.algo} has none")
     if cfg.messages == "off" and cfg.algo != "udan":
         raise EnvConfigError(f"--messages off is for udan; {cfg.algo} has no messages")
     if cfg.algo == "qmix" and env.config.agents[0] != env.config.agents[1]:
@@ -598,8 +607,14 @@ def build(cfg: TrainConfig) -> tuple[ArenaBatch, MultiAgentQ]:
         messages=cfg.messages == "on",
     )
     torch.manual_seed(cfg.seed)
-    return env, MultiAgentQ(spec)
+    model = MultiAgentQ(spec)
+    if cfg.mixer_init == "sum":
+        model.mixer.start_as_sum()
+    return env, model
 
+
+#: ``TrainConfig.mixer_init``'s choices.
+MIXER_INITS = ("small", "sum")
 
 #: ``TrainConfig.explore``'s choices.
 EXPLORE = ("uniform", "balanced")
