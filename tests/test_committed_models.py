@@ -12,7 +12,8 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``magent_tiger/seed1``, ``magent_queue``, its try at N = 2-20 ``magent_queue/agents2_20``,
 ``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f; the pursuit tries
 on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursuit_vdn/map30``,
-``baselines/magent_pursuit_qmix/map30`` and ``magent_pursuit/map30``: at 01c9298).
+``baselines/magent_pursuit_qmix/map30`` and ``magent_pursuit/map30``: at 01c9298;
+``magent_pursuit/map30_sum``: at 5dff52b).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -155,6 +156,10 @@ BEFORE = {
     "magent_pursuit/map30": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "1651a7d04d6fb42b8d3a48c3f5cfb6a4166b6eeab45f1aa577a29811f3c38e04",
+    ),
+    "magent_pursuit/map30_sum": (
+        "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
+        "e29c7256ccd9fadc8521ce78b6472fbaca8ae9bb1b8a4718b5084e8ab1f3f216",
     ),
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",

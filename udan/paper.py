@@ -138,6 +138,11 @@ MAGENT_TRIES = {
     "pursuit": (
         ("UDAN, 30×30 map, slow ε, sheep curriculum (a deviation)", "magent_pursuit/map30", "udan"),
         (
+            "UDAN, the same, its mixer started as a sum (a deviation)",
+            "magent_pursuit/map30_sum",
+            "udan",
+        ),
+        (
             "QMIX, 30×30 map, slow ε, sheep curriculum (a deviation)",
             "baselines/magent_pursuit_qmix/map30",
             "qmix",
