@@ -344,6 +344,17 @@ def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_retur
     assert discounted.any()
 
 
+def test_mixer_init_sum_starts_udan_s_mixer_as_vdn_s_sum_and_small_as_before():
+    cfg = TrainConfig(env="magent/pursuit", agents="6", map_size=20, obstacles="0", n_envs=2,
+                      hidden=16, mix_dim=8, mixer_init="sum")  # fmt: skip
+    mixer = build(cfg)[1].mixer
+    q, feats = torch.randn(2, 6), torch.randn(2, 6, 16)
+    mask = torch.ones(2, 6, dtype=torch.bool)
+    assert torch.allclose(mixer(q, feats, mask), q.sum(1), atol=1e-4)
+    small = build(dataclasses.replace(cfg, mixer_init="small"))[1].mixer
+    assert (small.w2.abs() < 0.1).all() and not torch.allclose(small(q, feats, mask), q.sum(1))
+
+
 @pytest.mark.parametrize(("explore", "move_share"), [("uniform", 5 / 17), ("balanced", 0.5)])
 def test_explore_sets_how_often_a_random_pursuit_wolf_moves(explore, move_share):
     """ε = 1: every action is the random draw; uniform moves on 5 of 17, balanced on half, and
