@@ -1,5 +1,6 @@
 """udan-train end to end at tiny sizes: learning, exact resume, checkpoints, bad input."""
 
+import csv
 import dataclasses
 import shutil
 import subprocess
@@ -84,6 +85,12 @@ def test_an_interrupted_run_resumes_exactly(tmp_path, algo_options):
         if a.get(key) is not None:
             assert all(torch.equal(a[key][k], b[key][k]) for k in a[key]), key
     assert a["progress"]["updates"] == b["progress"]["updates"]
+    # and its learning curve goes on as the straight run's: every column but the speed
+    curves = [
+        [row[:-1] for row in csv.reader((tmp_path / out / "progress.csv").open())]
+        for out in ("a", "b")
+    ]
+    assert curves[0] == curves[1] and len(curves[0]) == 9
 
 
 def test_a_run_stopped_at_any_moment_of_a_save_resumes_exactly_or_says_why_not(

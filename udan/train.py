@@ -619,6 +619,9 @@ MIXER_INITS = ("small", "sum")
 #: ``TrainConfig.explore``'s choices.
 EXPLORE = ("uniform", "balanced")
 
+#: The logged training return is the mean of the last this many episodes.
+RETURN_WINDOW = 200
+
 
 def training_actor(cfg: TrainConfig, model: MultiAgentQ, env: ArenaBatch) -> Actor:
     """The acting side of a training rollout: ``cfg``'s leader exploration and the distribution
@@ -681,7 +684,9 @@ class Run:
             self.csv.writerow(
                 ["steps", "episodes", "updates", "epsilon", "return", *loss_names, "steps_per_s"]
             )
-        self.returns: list[float] = []
+        # the episodes the logged return averages, kept in the checkpoint so that a resumed
+        # run's curve goes on as the uninterrupted run's would (runs before it restart empty)
+        self.returns: list[float] = list(self.progress.pop("recent_returns", []))
         self.next_checkpoint = self.progress["steps"] + cfg.checkpoint_every
         self.started, self.steps_at_start = time.perf_counter(), self.progress["steps"]
         self.seconds_before = self.progress["seconds"]
@@ -744,7 +749,7 @@ class Run:
         ``worker_rates``: each rollout worker's own steps per second, for the log."""
         progress = self.progress
         alertness = self.prey_alertness()  # the rollout's, read before its steps are counted
-        self.returns = (self.returns + returns.tolist())[-200:]
+        self.returns = (self.returns + returns.tolist())[-RETURN_WINDOW:]
         progress["steps"] += steps
         progress["episodes"] += len(returns)
         rate = (progress["steps"] - self.steps_at_start) / (time.perf_counter() - self.started)
@@ -805,8 +810,9 @@ class Run:
         replay_path = self.out / "replay.npz"
         if replay is not None:
             replay.save(replay_path, self.progress["steps"])
+        progress = {**self.progress, "recent_returns": list(self.returns)}
         save_checkpoint(
-            self.path, model, target, optim, self.cfg, self.env, self.progress, rng_state, extra
+            self.path, model, target, optim, self.cfg, self.env, progress, rng_state, extra
         )
         if replay is not None:
             EpisodeReplay.commit(replay_path)
