@@ -13,7 +13,8 @@ evaluation here the two play the same episodes to the same scores, their exports
 ``baselines/magent_queue_qmix`` and ``baselines/magent_queue_vdn``: at 9fa5f8f; the pursuit tries
 on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursuit_vdn/map30``,
 ``baselines/magent_pursuit_qmix/map30`` and ``magent_pursuit/map30``: at 01c9298;
-``magent_pursuit/map30_sum``: at 5dff52b).
+``magent_pursuit/map30_sum``, ``magent_pursuit/map30_sum15`` and its second training seed
+``magent_pursuit/map30_sum15/seed1``: at 5dff52b).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -160,6 +161,14 @@ BEFORE = {
     "magent_pursuit/map30_sum": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "e29c7256ccd9fadc8521ce78b6472fbaca8ae9bb1b8a4718b5084e8ab1f3f216",
+    ),
+    "magent_pursuit/map30_sum15": (
+        "728c396a6beaff8c8446d35247fc206f00a7177199625c483a68b5d3d74633ce",
+        "86ba5f1f9a337ca55003c2720f928f96d3a6123c7ab67768fecce71c9df21cc7",
+    ),
+    "magent_pursuit/map30_sum15/seed1": (
+        "125706b7c4aec7859bb383370bc9786f657e6d69509f352627978ee8411741c6",
+        "21e36fbcb911b10d479fbd5cb5d32d7977ddcecb670140b013e72fcdd76397be",
     ),
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",

@@ -143,6 +143,11 @@ MAGENT_TRIES = {
             "udan",
         ),
         (
+            "UDAN, the same, its mixer started as a sum, trained at N = 15 (a deviation)",
+            "magent_pursuit/map30_sum15",
+            "udan",
+        ),
+        (
             "QMIX, 30×30 map, slow ε, sheep curriculum (a deviation)",
             "baselines/magent_pursuit_qmix/map30",
             "qmix",
