@@ -685,7 +685,8 @@ class Run:
                 ["steps", "episodes", "updates", "epsilon", "return", *loss_names, "steps_per_s"]
             )
         # the episodes the logged return averages, kept in the checkpoint so that a resumed
-        # run's curve goes on as the uninterrupted run's would (runs before it restart empty)
+        # run's curve goes on as the uninterrupted run's would (checkpoints older than this
+        # keep none: their resumed curves restart the average)
         self.returns: list[float] = list(self.progress.pop("recent_returns", []))
         self.next_checkpoint = self.progress["steps"] + cfg.checkpoint_every
         self.started, self.steps_at_start = time.perf_counter(), self.progress["steps"]
