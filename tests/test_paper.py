@@ -31,6 +31,12 @@ def _models(tmp_path: Path, *folders: str) -> Path:
 
 #: The queue VDN baseline's folder (three training seeds in the MAgent test's models).
 QUEUE_VDN = "baselines/magent_queue_vdn"
+#: The pursuit IQL baseline's try on a map of its own, and the labels of it and UDAN's.
+PURSUIT_IQL_TRY = "baselines/magent_pursuit_iql/map30"
+TRY_LABELS = (
+    "UDAN, 30×30 map, slow ε, sheep curriculum (a deviation)",
+    "IQL, 30×30 map, slow ε, sheep curriculum (a deviation)",
+)
 
 
 def _row(text: str, title: str, first: str) -> list[float]:
@@ -122,17 +128,25 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
                 log=quiet,
             )
     pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
-    for folder, map_size in (("magent_pursuit", 12), ("magent_pursuit/map30", 8)):  # a try
-        train(
-            TrainConfig(
-                env="magent/pursuit",
-                steps=288,
-                out=str(models / folder),
-                **{**pursuit, "map_size": map_size},
-                **tiny,
-            ),
-            log=quiet,
-        )
+    for folder, algo, map_size, seeds in (
+        ("magent_pursuit", "udan", 12, 1),
+        ("magent_pursuit/map30", "udan", 8, 2),  # a try on a map of its own
+        (PURSUIT_IQL_TRY, "iql", 8, 2),  # a baseline's try on that map
+        ("baselines/magent_pursuit_vdn", "vdn", 12, 2),  # on the paper's map
+    ):
+        for seed in range(seeds):
+            train(
+                TrainConfig(
+                    env="magent/pursuit",
+                    algo=algo,
+                    steps=288,
+                    seed=seed,
+                    out=str(models / folder / (f"seed{seed}" if seed else "")),
+                    **{**pursuit, "map_size": map_size},
+                    **tiny,
+                ),
+                log=quiet,
+            )
     out = tmp_path / "results.md"
     assert main(["--models", str(models), "--out", str(out), "--episodes", "2"]) == 0
     text = out.read_text()
@@ -155,7 +169,7 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
         assert f"| {trained} pooled |" in text[shuffle:].split("\n\n", 2)[1]
     _a_try_on_its_own_map_is_played_there(text, models)
     _the_seeds_table_is_each_seed_played_alone(text, models)
-    assert "**pursuit: across training seeds**" not in text  # one seed: no table
+    _a_try_is_set_against_the_baselines_on_its_task(text, models)
 
 
 def _a_try_on_its_own_map_is_played_there(text: str, models: Path) -> None:
@@ -222,6 +236,32 @@ def _the_seeds_table_is_each_seed_played_alone(text: str, models: Path) -> None:
     row = next(line for line in text.splitlines() if line.startswith("| UDAN, Δ messages=shuffle"))
     assert "| 0, 1 |" in row and f"{costs[0]:+.2f}, {costs[1]:+.2f}" in row
     assert "| magent_queue/seed1 |" in text  # its learning curve, named by its folder
+
+
+def _a_try_is_set_against_the_baselines_on_its_task(text: str, models: Path) -> None:
+    """A UDAN try with seeds is set against a baseline's try with seeds on the same map (Welch's
+    t on their own map), never against a baseline trained on another map; the main UDAN, with
+    one seed, against none; and the try's shuffle row is its own."""
+    from scipy import stats
+
+    def played(folder: str) -> float:
+        model, _ = load_model(models / folder / "checkpoint.pt")
+        options = {"map_size": 8, "max_steps": 12}
+        cells = evaluate("magent/pursuit", CheckpointPolicy(model), (2, 3), (0, 0), 10, 0, options)
+        return np.concatenate([c.scores for c in cells]).mean()
+
+    table = "pursuit: across training seeds"
+    ours = [played(f"magent_pursuit/map30{suffix}") for suffix in ("", "/seed1")]
+    iql = [played(f"{PURSUIT_IQL_TRY}{suffix}") for suffix in ("", "/seed1")]
+    udan, baseline = TRY_LABELS
+    welch = stats.ttest_ind(ours, iql, equal_var=False).confidence_interval()
+    assert _row(text, table, f"{udan} − {baseline} (Welch's t)") == pytest.approx(
+        [np.mean(ours) - np.mean(iql), welch.low, welch.high], abs=0.006
+    )
+    rows = text[text.index(f"**{table}**") :].split("\n\n", 2)[1].splitlines()
+    assert len([row for row in rows if "(Welch's t)" in row]) == 1  # not against VDN's map
+    assert _row(text, table, "VDN") and not any(row.startswith("| UDAN −") for row in rows)
+    assert any(row.startswith(f"| {udan}, Δ messages=shuffle (paired) | 0, 1 |") for row in rows)
 
 
 @pytest.mark.parametrize(

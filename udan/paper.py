@@ -10,8 +10,8 @@ markdown file (``make paper`` writes ``docs/results.md``), each beside the paper
 - Table II and Fig. 5 (MAgent pursuit, tiger, queue): a model's row where one is committed, and
   "not trained yet" where none is: a number that was not measured is never written. A learner
   trained with more seeds keeps each further seed in a ``seed<k>/`` folder inside its own; the
-  scenario then gets a table across seeds (each seed's score, a CI over seeds, UDAN against the
-  baseline seed by seed, what shuffled messages cost each UDAN seed).
+  scenario then gets a table across seeds (each seed's score, a CI over seeds, each UDAN against
+  each baseline trained on the same task, what shuffled messages cost each UDAN seed).
 
 Models are found by folder under ``--models`` (:data:`FIG7`, :data:`FIG8`, :data:`CONTROL`,
 :data:`MAGENT`); each evaluation is seeded as ``udan-eval`` seeds it (the same layouts for every
@@ -634,12 +634,16 @@ def _interval(mean: float, half: float, fmt: str) -> str:
 
 
 def _seeds_table(
-    scenario: str, per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]], settings: Settings
+    scenario: str,
+    per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]],
+    algos: dict[str, str],
+    settings: Settings,
 ) -> str:
     """Every learner trained with more than one seed: each seed's pooled score, their mean with
     a CI across seeds (the spread between training runs, which one run's episode CI does not
-    show), UDAN's mean minus each such baseline's (Welch's t: the runs are independent), and
-    what shuffled messages cost each UDAN seed (paired on its episodes)."""
+    show), each UDAN's mean minus each such baseline's trained on the same task (Welch's t: the
+    runs are independent), and what shuffled messages cost each UDAN seed (paired on its
+    episodes). ``algos`` maps a label to the paper's algorithm key (``"udan"`` for UDAN)."""
     lines = [
         f"**{scenario}: across training seeds** (each seed's score pooled over every N and "
         "episode above, every seed on the same episodes; the 95 % CI is Student's t over seeds, "
@@ -658,17 +662,20 @@ def _seeds_table(
     }
     for label, (seeds, scores) in means.items():
         lines.append(_seed_row(label, seeds, scores))
-    if "UDAN" not in means:
-        return "\n".join(lines)
-    ours, mine = means["UDAN"]
-    for label, (seeds, scores) in means.items():
-        if label != "UDAN":
-            both = f"{', '.join(map(str, ours))} − {', '.join(map(str, seeds))}"
-            difference = _interval(*welch_ci(mine, scores), "{:+.2f}")
-            lines.append(f"| UDAN − {label} (Welch's t) | {both} | — | {difference} |")
-    if per_seed["UDAN"][0][0].model.spec.communicates:
+    udans = [label for label in means if algos[label] == "udan"]
+    for udan in udans:
+        ours, mine = means[udan]
+        task = per_seed[udan][0][0].options()
+        for label, (seeds, scores) in means.items():
+            if algos[label] != "udan" and per_seed[label][0][0].options() == task:
+                both = f"{', '.join(map(str, ours))} − {', '.join(map(str, seeds))}"
+                difference = _interval(*welch_ci(mine, scores), "{:+.2f}")
+                lines.append(f"| {udan} − {label} (Welch's t) | {both} | — | {difference} |")
+    for udan in udans:
+        if not per_seed[udan][0][0].model.spec.communicates:
+            continue
         costs = []
-        for model, results in per_seed["UDAN"]:
+        for model, results in per_seed[udan]:
             agents = (min(r.agents for r in results), max(r.agents for r in results))
             shuffled = _play(
                 model,
@@ -680,7 +687,7 @@ def _seeds_table(
                 settings.magent_episodes,
             )
             costs.append(_scores(shuffled).mean() - _scores(results).mean())
-        lines.append(_seed_row("UDAN, Δ messages=shuffle (paired)", ours, costs, True))
+        lines.append(_seed_row(f"{udan}, Δ messages=shuffle (paired)", means[udan][0], costs, True))
     return "\n".join(lines)
 
 
@@ -704,6 +711,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         loaded = load_models(settings.models, entries)
         udan = loaded["UDAN"]
         per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]] = {}
+        algos = {label: algo for label, _, algo in entries}
         seed_curves: list[tuple[str, str]] = []
         other_tasks: list[Loaded] = []  # tries on task options of their own (a smaller map)
         for (label, folder, algo), model in zip(entries, loaded.values(), strict=True):
@@ -768,7 +776,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             )
         curves += [e for e in entries if loaded[e[0]] is not None] + seed_curves
         if any(len(runs) > 1 for runs in per_seed.values()):
-            seed_tables += ["", _seeds_table(scenario, per_seed, settings)]
+            seed_tables += ["", _seeds_table(scenario, per_seed, algos, settings)]
     scenario = {
         settings.models / folder: f"magent/{name}"
         for name, entries in MAGENT.items()
