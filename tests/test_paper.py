@@ -31,8 +31,10 @@ def _models(tmp_path: Path, *folders: str) -> Path:
 
 #: The queue VDN baseline's folder (three training seeds in the MAgent test's models).
 QUEUE_VDN = "baselines/magent_queue_vdn"
-#: The pursuit IQL baseline's try on a map of its own, and the labels of it and UDAN's.
+#: The pursuit IQL baseline's try on a map of its own, the VDN baseline on the paper's, and the
+#: labels of UDAN's try and IQL's.
 PURSUIT_IQL_TRY = "baselines/magent_pursuit_iql/map30"
+PURSUIT_VDN = "baselines/magent_pursuit_vdn"
 TRY_LABELS = (
     "UDAN, 30×30 map, slow ε, sheep curriculum (a deviation)",
     "IQL, 30×30 map, slow ε, sheep curriculum (a deviation)",
@@ -132,7 +134,7 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
         ("magent_pursuit", "udan", 12, 1),
         ("magent_pursuit/map30", "udan", 8, 2),  # a try on a map of its own
         (PURSUIT_IQL_TRY, "iql", 8, 2),  # a baseline's try on that map
-        ("baselines/magent_pursuit_vdn", "vdn", 12, 2),  # on the paper's map
+        (PURSUIT_VDN, "vdn", 12, 2),  # on the paper's map
     ):
         for seed in range(seeds):
             train(
@@ -239,29 +241,43 @@ def _the_seeds_table_is_each_seed_played_alone(text: str, models: Path) -> None:
 
 
 def _a_try_is_set_against_the_baselines_on_its_task(text: str, models: Path) -> None:
-    """A UDAN try with seeds is set against a baseline's try with seeds on the same map (Welch's
-    t on their own map), never against a baseline trained on another map; the main UDAN, with
-    one seed, against none; and the try's shuffle row is its own."""
+    """A UDAN try with seeds is set against a baseline's try with seeds on their own map, and,
+    played on the paper's map, against both that try and the baseline trained there (Welch's t
+    over the seeds, each seed played on that map); never a seed played on one map against one
+    played on another; and the try's shuffle rows are its own, on each map."""
     from scipy import stats
 
-    def played(folder: str) -> float:
+    def played(folder: str, map_size: int) -> float:
         model, _ = load_model(models / folder / "checkpoint.pt")
-        options = {"map_size": 8, "max_steps": 12}
+        options = {"map_size": map_size, "max_steps": 12}
         cells = evaluate("magent/pursuit", CheckpointPolicy(model), (2, 3), (0, 0), 10, 0, options)
         return np.concatenate([c.scores for c in cells]).mean()
 
+    def seeds(folder: str, map_size: int) -> list[float]:
+        return [played(f"{folder}{suffix}", map_size) for suffix in ("", "/seed1")]
+
     table = "pursuit: across training seeds"
-    ours = [played(f"magent_pursuit/map30{suffix}") for suffix in ("", "/seed1")]
-    iql = [played(f"{PURSUIT_IQL_TRY}{suffix}") for suffix in ("", "/seed1")]
-    udan, baseline = TRY_LABELS
-    welch = stats.ttest_ind(ours, iql, equal_var=False).confidence_interval()
-    assert _row(text, table, f"{udan} − {baseline} (Welch's t)") == pytest.approx(
-        [np.mean(ours) - np.mean(iql), welch.low, welch.high], abs=0.006
+    udan, iql = TRY_LABELS
+    there = ", played on the paper's 12×12 map, 12 steps"
+    pairs = (
+        (udan, iql, seeds("magent_pursuit/map30", 8), seeds(PURSUIT_IQL_TRY, 8)),
+        (udan + there, iql + there, seeds("magent_pursuit/map30", 12), seeds(PURSUIT_IQL_TRY, 12)),
+        (udan + there, "VDN", seeds("magent_pursuit/map30", 12), seeds(PURSUIT_VDN, 12)),
     )
+    for ours, baseline, mine, theirs in pairs:
+        assert _row(text, table, ours)[:2] == pytest.approx(mine, abs=0.006)
+        assert _row(text, table, baseline)[:2] == pytest.approx(theirs, abs=0.006)
+        welch = stats.ttest_ind(mine, theirs, equal_var=False).confidence_interval()
+        assert _row(text, table, f"{ours} − {baseline} (Welch's t)") == pytest.approx(
+            [np.mean(mine) - np.mean(theirs), welch.low, welch.high], abs=0.006
+        )
     rows = text[text.index(f"**{table}**") :].split("\n\n", 2)[1].splitlines()
-    assert len([row for row in rows if "(Welch's t)" in row]) == 1  # not against VDN's map
-    assert _row(text, table, "VDN") and not any(row.startswith("| UDAN −") for row in rows)
-    assert any(row.startswith(f"| {udan}, Δ messages=shuffle (paired) | 0, 1 |") for row in rows)
+    assert len([row for row in rows if "(Welch's t)" in row]) == len(pairs)
+    assert not any(row.startswith("| UDAN −") for row in rows)  # the main UDAN has one seed
+    for ours in (udan, udan + there):
+        assert any(
+            row.startswith(f"| {ours}, Δ messages=shuffle (paired) | 0, 1 |") for row in rows
+        )
 
 
 @pytest.mark.parametrize(

@@ -633,17 +633,28 @@ def _interval(mean: float, half: float, fmt: str) -> str:
     return f"{fmt.format(mean)} [{fmt.format(mean - half)}, {fmt.format(mean + half)}]"
 
 
-def _seeds_table(
-    scenario: str,
-    per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]],
-    algos: dict[str, str],
-    settings: Settings,
-) -> str:
+@dataclass
+class Seeds:
+    """One learner's training seeds played on one task: a row group of the table across seeds."""
+
+    algo: str
+    """The paper's algorithm key (``"udan"`` for UDAN)."""
+    task_of: Loaded | None
+    """Whose task every seed is played on (None: the seeds' own)."""
+    runs: list[tuple[Loaded, list[CellResult]]]
+    """Each seed's model and its results, the first seed first."""
+
+    def task(self) -> str:
+        """The task the seeds were played on, comparable between learners."""
+        return str((self.task_of or self.runs[0][0]).options())
+
+
+def _seeds_table(scenario: str, per_seed: dict[str, Seeds], settings: Settings) -> str:
     """Every learner trained with more than one seed: each seed's pooled score, their mean with
     a CI across seeds (the spread between training runs, which one run's episode CI does not
-    show), each UDAN's mean minus each such baseline's trained on the same task (Welch's t: the
+    show), each UDAN's mean minus each such baseline's played on the same task (Welch's t: the
     runs are independent), and what shuffled messages cost each UDAN seed (paired on its
-    episodes). ``algos`` maps a label to the paper's algorithm key (``"udan"`` for UDAN)."""
+    episodes)."""
     lines = [
         f"**{scenario}: across training seeds** (each seed's score pooled over every N and "
         "episode above, every seed on the same episodes; the 95 % CI is Student's t over seeds, "
@@ -654,28 +665,29 @@ def _seeds_table(
     ]
     means = {
         label: (
-            [m.checkpoint["config"]["seed"] for m, _ in runs],
-            [_scores(r).mean() for _, r in runs],
+            [m.checkpoint["config"]["seed"] for m, _ in learner.runs],
+            [_scores(r).mean() for _, r in learner.runs],
         )
-        for label, runs in per_seed.items()
-        if len(runs) > 1
+        for label, learner in per_seed.items()
+        if len(learner.runs) > 1
     }
     for label, (seeds, scores) in means.items():
         lines.append(_seed_row(label, seeds, scores))
-    udans = [label for label in means if algos[label] == "udan"]
+    udans = [label for label in means if per_seed[label].algo == "udan"]
     for udan in udans:
         ours, mine = means[udan]
-        task = per_seed[udan][0][0].options()
         for label, (seeds, scores) in means.items():
-            if algos[label] != "udan" and per_seed[label][0][0].options() == task:
+            other = per_seed[label]
+            if other.algo != "udan" and other.task() == per_seed[udan].task():
                 both = f"{', '.join(map(str, ours))} − {', '.join(map(str, seeds))}"
                 difference = _interval(*welch_ci(mine, scores), "{:+.2f}")
                 lines.append(f"| {udan} − {label} (Welch's t) | {both} | — | {difference} |")
     for udan in udans:
-        if not per_seed[udan][0][0].model.spec.communicates:
+        learner = per_seed[udan]
+        if not learner.runs[0][0].model.spec.communicates:
             continue
         costs = []
-        for model, results in per_seed[udan]:
+        for model, results in learner.runs:
             agents = (min(r.agents for r in results), max(r.agents for r in results))
             shuffled = _play(
                 model,
@@ -685,6 +697,7 @@ def _seeds_table(
                 settings,
                 "messages=shuffle",
                 settings.magent_episodes,
+                learner.task_of,
             )
             costs.append(_scores(shuffled).mean() - _scores(results).mean())
         lines.append(_seed_row(f"{udan}, Δ messages=shuffle (paired)", means[udan][0], costs, True))
@@ -710,8 +723,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
     for scenario, entries in MAGENT.items():
         loaded = load_models(settings.models, entries)
         udan = loaded["UDAN"]
-        per_seed: dict[str, list[tuple[Loaded, list[CellResult]]]] = {}
-        algos = {label: algo for label, _, algo in entries}
+        per_seed: dict[str, Seeds] = {}
         seed_curves: list[tuple[str, str]] = []
         other_tasks: list[Loaded] = []  # tries on task options of their own (a smaller map)
         for (label, folder, algo), model in zip(entries, loaded.values(), strict=True):
@@ -724,35 +736,34 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             everything.append(model)
             tested = (udan or model).trained_agents
             env, agents = model.checkpoint["env"], parse_range(tested, "agents")
-            results = _play(model, env, agents, (0, 0), settings, episodes=settings.magent_episodes)
+            episodes = settings.magent_episodes
+            results = _play(model, env, agents, (0, 0), settings, episodes=episodes)
             elsewhere = udan is not None and model.options() != udan.options()
             here = f"— (the paper's task: {_task(udan)})" if elsewhere else theirs
             out.append(
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
                 f"{_pooled(results)} | {here} |"
             )
+            seeds = _seeds(settings.models, label, folder)
+            for task_of in (None, udan) if elsewhere else (None,):
+                played = [
+                    (one, _play(one, env, agents, (0, 0), settings, None, episodes, task_of))
+                    for one in (model, *seeds)
+                ]
+                row = label if task_of is None else f"{label}, played on the paper's {_task(udan)}"
+                per_seed[row] = Seeds(algo, task_of, played)
             if elsewhere:
                 other_tasks.append(model)
-                there = _play(
-                    model, env, agents, (0, 0), settings, None, settings.magent_episodes, udan
-                )
                 out.append(
-                    f"| {scenario} | {label}, played on the paper's {_task(udan)} | "
-                    f"{model.trained_agents} | {tested} | {_pooled(there)} | {theirs} |"
+                    f"| {scenario} | {row} | {model.trained_agents} | {tested} | "
+                    f"{_pooled(per_seed[row].runs[0][1])} | {theirs} |"
                 )
             if model.model.spec.communicates:
                 name = scenario if model is udan else f"{scenario} (`{folder}`)"
                 shuffle = _shuffle_table(
-                    model, results, env, agents, (0, 0), settings, name, settings.magent_episodes
+                    model, results, env, agents, (0, 0), settings, name, episodes
                 )
                 shuffles += ["", shuffle]
-            seeds = _seeds(settings.models, label, folder)
-            per_seed[label] = [(model, results)]
-            for other in seeds:
-                played = _play(
-                    other, env, agents, (0, 0), settings, episodes=settings.magent_episodes
-                )
-                per_seed[label].append((other, played))
             everything += seeds
             seed_curves += [(label, other.folder) for other in seeds]
         tasks: dict[str, Loaded] = {}  # one row per task: the UDAN's, then the tries'
@@ -775,8 +786,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
         curves += [e for e in entries if loaded[e[0]] is not None] + seed_curves
-        if any(len(runs) > 1 for runs in per_seed.values()):
-            seed_tables += ["", _seeds_table(scenario, per_seed, algos, settings)]
+        if any(len(learner.runs) > 1 for learner in per_seed.values()):
+            seed_tables += ["", _seeds_table(scenario, per_seed, settings)]
     scenario = {
         settings.models / folder: f"magent/{name}"
         for name, entries in MAGENT.items()
