@@ -11,7 +11,8 @@ markdown file (``make paper`` writes ``docs/results.md``), each beside the paper
   "not trained yet" where none is: a number that was not measured is never written. A learner
   trained with more seeds keeps each further seed in a ``seed<k>/`` folder inside its own; the
   scenario then gets a table across seeds (each seed's score, a CI over seeds, each UDAN against
-  each baseline trained on the same task, what shuffled messages cost each UDAN seed).
+  each baseline played on the same task, what shuffled messages cost each UDAN seed); a try
+  trained on a map of its own has its seeds played on its map and on the paper's.
 
 Models are found by folder under ``--models`` (:data:`FIG7`, :data:`FIG8`, :data:`CONTROL`,
 :data:`MAGENT`); each evaluation is seeded as ``udan-eval`` seeds it (the same layouts for every
