@@ -14,7 +14,9 @@ evaluation here the two play the same episodes to the same scores, their exports
 on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursuit_vdn/map30``,
 ``baselines/magent_pursuit_qmix/map30`` and ``magent_pursuit/map30``: at 01c9298;
 ``magent_pursuit/map30_sum``, ``magent_pursuit/map30_sum15`` and its second training seed
-``magent_pursuit/map30_sum15/seed1``: at 5dff52b).
+``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
+``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
+``seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -94,6 +96,14 @@ BEFORE = {
         "116a6e8614810d97b0c779cdcaa7189c440246e784e690b89b64d2ff701bb2f2",
         "d44af6a97bfddc4c4a567ac35e683f8bd63f3b3e4459fcd8f0dc8e21e2ed442e",
     ),
+    "baselines/magent_pursuit_iql/map30/seed1": (
+        "36cc8d6cacfa123c8819c3daa38177bb4ec97a2a2563ddfa88d5e07ebac2709b",
+        "9e272ca606a5055cb728ed06174c82736c3cc5f03e0292fa6cd63bdadce462c0",
+    ),
+    "baselines/magent_pursuit_iql/map30/seed2": (
+        "92a525bf7efde187f018a1f8989ae53e472802799d8482ec0a99e015a0d5fc75",
+        "bd8f76ab3bf85e8f2189e28c3442772f822e125240eb5d5e157d125995ede967",
+    ),
     "baselines/magent_pursuit_qmix": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "fa40fa54fb97d6a79a5879ac0dae2c97ff376bb86911bfc0e6067aa0d673c411",
@@ -169,6 +179,10 @@ BEFORE = {
     "magent_pursuit/map30_sum15/seed1": (
         "125706b7c4aec7859bb383370bc9786f657e6d69509f352627978ee8411741c6",
         "21e36fbcb911b10d479fbd5cb5d32d7977ddcecb670140b013e72fcdd76397be",
+    ),
+    "magent_pursuit/map30_sum15/seed2": (
+        "ea77d06d210029d2398f762411e471300d3cb2eb28d7aee3eec89aa77fc9ebd5",
+        "fd10200584fb3a72ebafdbed15484b6d6217b9958df34b9be21399907e566b17",
     ),
     "magent_queue": (
         "abf552fd0715c7bee620d228eca29504ff47e14353af293adc88277a0ec5d83d",

@@ -114,37 +114,25 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
 
     models = _models(tmp_path, "hidden_goal")
     queue = {"agents": "1-3", "obstacles": "0", "map_size": 8, "max_steps": 12}
+    pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
     tiny = {**TINY, "leader_explore": 0.3}
-    for folder, algo, seeds in (("magent_queue", "udan", 2), (QUEUE_VDN, "vdn", 3)):
+    for env, folder, algo, seeds, steps, options in (
+        ("magent/queue", "magent_queue", "udan", 2, 480, queue),
+        ("magent/queue", QUEUE_VDN, "vdn", 3, 480, queue),
+        ("magent/pursuit", "magent_pursuit", "udan", 1, 288, pursuit),
+        ("magent/pursuit", "magent_pursuit/map30", "udan", 2, 288, {**pursuit, "map_size": 8}),
+        ("magent/pursuit", PURSUIT_IQL_TRY, "iql", 2, 288, {**pursuit, "map_size": 8}),
+        ("magent/pursuit", PURSUIT_VDN, "vdn", 2, 288, pursuit),  # on the paper's map
+    ):
         for seed in range(seeds):  # further training seeds in seed<k>/ folders of their own
             train(
                 TrainConfig(
-                    env="magent/queue",
+                    env=env,
                     algo=algo,
-                    steps=480,
+                    steps=steps,
                     seed=seed,
                     out=str(models / folder / (f"seed{seed}" if seed else "")),
-                    **queue,
-                    **tiny,
-                ),
-                log=quiet,
-            )
-    pursuit = {"agents": "2-3", "obstacles": "0", "map_size": 12, "max_steps": 12}
-    for folder, algo, map_size, seeds in (
-        ("magent_pursuit", "udan", 12, 1),
-        ("magent_pursuit/map30", "udan", 8, 2),  # a try on a map of its own
-        (PURSUIT_IQL_TRY, "iql", 8, 2),  # a baseline's try on that map
-        (PURSUIT_VDN, "vdn", 12, 2),  # on the paper's map
-    ):
-        for seed in range(seeds):
-            train(
-                TrainConfig(
-                    env="magent/pursuit",
-                    algo=algo,
-                    steps=288,
-                    seed=seed,
-                    out=str(models / folder / (f"seed{seed}" if seed else "")),
-                    **{**pursuit, "map_size": map_size},
+                    **options,
                     **tiny,
                 ),
                 log=quiet,
