@@ -19,7 +19,7 @@ from test_train import one_line_exit_2, quiet, run_cli
 
 from udan.budget import planned_counts
 from udan.checkpoint import CheckpointError, load_checkpoint
-from udan.envs import EnvConfigError, make_vec
+from udan.envs import make_vec
 from udan.envs.magent import make
 from udan.learner import Actor, ModelSpec, MultiAgentQ
 from udan.train import (
@@ -310,8 +310,41 @@ def test_potential_is_nearness_to_the_closest_opponent_in_view():
     assert got["agent_2"] == pytest.approx(-(17**0.5) / 5)
     env.reset(options={"layout": {**layout, "opponents": [(1, 1)]}})
     assert set(env.potential().values()) == {-1.0}  # nothing in view
-    with pytest.raises(EnvConfigError, match="no opponents"):
-        make("magent/queue", **SHORT_QUEUE).potential()
+
+
+def test_queue_potential_is_the_step_cost_of_the_walk_to_the_nearest_line():
+    env = make("magent/queue", agents="1-5", map_size=10, seed=0)
+
+    def potential(*cells):
+        env.reset(options={"layout": {"agents": list(cells)}})
+        return [env.potential()[f"agent_{i}"] for i in range(len(cells))]
+
+    assert potential((2, 2), (2, 3), (2, 4)) == [0.0, 0.0, 0.0]  # a column
+    assert potential((3, 5), (4, 5), (5, 5), (6, 5)) == [0.0] * 4  # a row
+    assert potential((2, 2), (2, 3), (5, 4)) == pytest.approx([0.0, 0.0, -0.6])
+    assert potential((3, 5), (4, 5), (7, 5)) == pytest.approx([0.0, 0.0, -0.4])  # a gap of 2
+    assert potential((4, 4)) == [0.0]
+
+
+def test_queue_potential_finds_the_cheapest_line_of_all():
+    """Over random fleets, the total walk equals a brute-force minimum over every column and
+    row and every first cell (agents taken in order along the line, which is optimal in 1D)."""
+    size, rng = 9, np.random.default_rng(3)
+    env = make("magent/queue", agents="1-7", map_size=size, seed=0)
+    inner = np.arange(1, size - 1)
+    for _ in range(40):
+        n = int(rng.integers(1, 8))
+        flat = rng.choice(len(inner) ** 2, n, replace=False)
+        cells = np.stack([inner[flat // len(inner)], inner[flat % len(inner)]], axis=1)
+        env.reset(options={"layout": {"agents": cells.tolist()}})
+        walk = -sum(env.potential().values()) / 0.2
+        brute = min(
+            np.abs(c[:, 0] - x).sum() + np.abs(np.sort(c[:, 1]) - (first + np.arange(n))).sum()
+            for c in (cells, cells[:, ::-1])
+            for x in inner
+            for first in range(1, size - n)
+        )
+        assert walk == pytest.approx(brute)
 
 
 def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_return():
@@ -438,8 +471,7 @@ def test_prey_curriculum_raises_the_sheep_s_alertness_from_0_to_1(
             ["--env", "magent/pursuit", "--algo", "coma", "--agents", "3", "--explore", "balanced"],
             "value learners",
         ),
-        (["--env", "magent/queue", "--shaping", "1"], "--shaping needs a task with opponents"),
-        (["--env", "arena/find_water", "--shaping", "1"], "--shaping needs a task with opponents"),
+        (["--env", "arena/find_water", "--shaping", "1"], "--shaping needs a MAgent task"),
         (["--env", "magent/pursuit", "--shaping", "-1"], "--shaping must be >= 0"),
         (["--env", "magent/queue", "--agents", "8-40"], "cannot line up"),
         (["--env", "magent/pursuit", "--agents", "0-3"], "at least 1"),

@@ -124,9 +124,10 @@ class TrainConfig:
     or an attack with equal odds, then uniform among them (MAgent tasks, where a uniformly
     random pursuit wolf attacks on 12 of its 17 actions and hardly moves)."""
     shaping: float = 0.0
-    """MAgent tasks with opponents: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s))
-    added to each agent's training reward, Φ its nearness to the closest opponent in view
-    (policy-invariant; scores and the logged return are the task's own; 0: none)."""
+    """MAgent tasks: weight c of potential-based reward shaping, c·(γΦ(s')−Φ(s)) added to each
+    agent's training reward, Φ its nearness to the closest opponent in view (pursuit, tiger) or
+    the step cost of its walk to the nearest line (queue) (policy-invariant; scores and the
+    logged return are the task's own; 0: none)."""
     prey_curriculum: str = ""
     """MAgent pursuit: START-END, shares of training: the sheep's alertness (the chance that a
     sheep seeing a wolf flees rather than wanders; 1 in the task) is 0 until START and rises
@@ -391,10 +392,8 @@ def training_batch(cfg: TrainConfig, batch: int, seed) -> ArenaBatch:
     )
     if cfg.shaping < 0:
         raise EnvConfigError(f"--shaping must be >= 0, got {cfg.shaping}")
-    if cfg.shaping and not getattr(env, "has_opponents", False):
-        raise EnvConfigError(
-            f"--shaping needs a task with opponents (magent/pursuit, magent/tiger), not {cfg.env}"
-        )
+    if cfg.shaping and not hasattr(env, "potential"):
+        raise EnvConfigError(f"--shaping needs a MAgent task (a potential to shape), not {cfg.env}")
     curriculum_span(cfg.prey_curriculum)  # a bad span is refused here
     if cfg.prey_curriculum and cfg.env != "magent/pursuit":
         raise EnvConfigError(f"--prey-curriculum is for magent/pursuit, not {cfg.env}")

@@ -242,9 +242,8 @@ class MagentEnv(ParallelEnv):
         """Each engine-held learning agent's nearness to the closest opponent, as far as it sees:
         ``-min(d, view) / view`` with ``d`` the Euclidean distance in cells, so -1 with no
         opponent in view (or none left) and 0 on top of one. Training's reward shaping
-        (``udan-train --shaping``) reads it; the task's own rewards never do."""
-        if self._opp_handle is None:
-            raise EnvConfigError(f"{self.metadata['name']}: has no opponents to be near")
+        (``udan-train --shaping``) reads it; the task's own rewards never do. Queue, with no
+        opponents, has its own."""
         cells, opponents = self.agent_cells(), self.positions()[1]
         view = float(self.agent_attrs["view"])
         near = np.full(len(cells), view)
@@ -556,6 +555,24 @@ class QueueEnv(MagentEnv):
                 f"{self.map_size}x{self.map_size} map (at most {self.map_size - 2})"
             )
 
+    def potential(self) -> dict[str, float]:
+        """Each engine-held agent's step cost of the cells it still has to walk to the nearest
+        line: ``step_reward · d``, 0 for a fleet in line.
+
+        The nearest line is the column (or row) and first cell that the fleet, sorted along it,
+        reaches with the fewest moves in all (median across, median of the sorted offsets
+        along); ``d`` is this agent's L1 distance to its cell there. It ignores that agents
+        block each other, so it is a lower bound on the moves left, never a plan. Training's
+        reward shaping (``udan-train --shaping``) reads it; the task's rewards never do."""
+        cells = self.agent_cells()
+        if not cells:
+            return {}
+        xy = np.array(list(cells.values()), dtype=np.int64)
+        column, row = line_distances(xy, self.map_size), line_distances(xy[:, ::-1], self.map_size)
+        best = row if row.sum() < column.sum() else column
+        cost = float(self.agent_attrs["step_reward"])
+        return dict(zip(cells, (cost * best).tolist(), strict=True))
+
     def _reward_rules(self, cfg: gw.Config, group: int, opp: int | None) -> None:
         everyone = gw.AgentSymbol(group, index="all")
         cfg.add_reward_rule(
@@ -564,6 +581,22 @@ class QueueEnv(MagentEnv):
             value=1.0,
             terminal=self.end_when_lined_up,
         )
+
+
+def line_distances(cells: np.ndarray, map_size: int) -> np.ndarray:
+    """L1 distance of each ``(x, y)`` cell to its place in the nearest column of ``len(cells)``
+    contiguous cells inside the map's walls: the column at the median x, the agents in y order
+    on consecutive cells from the median of their sorted y minus rank (what minimises the total
+    of the moves along, for cells taken in that order), clipped to fit the map."""
+    n = len(cells)
+    inner = (1, map_size - 2)
+    column = int(np.clip(np.median(cells[:, 0]).round(), *inner))
+    order = np.argsort(cells[:, 1], kind="stable")
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    offsets = cells[order, 1] - np.arange(n)
+    first = int(np.clip(np.median(offsets).round(), inner[0], inner[1] - n + 1))
+    return np.abs(cells[:, 0] - column) + np.abs(cells[:, 1] - (first + rank))
 
 
 _SCENARIOS: dict[str, type[MagentEnv]] = {
