@@ -140,11 +140,14 @@ def test_the_liner_lines_up_every_episode_where_random_agents_never_do():
 
     def scores(policy, agents):
         cells = evaluate("magent/queue", policy, agents, (0, 0), 3, 0)
-        return np.concatenate([c.scores for c in cells])
+        return np.concatenate([c.scores for c in cells]), [c.line_walk for c in cells]
 
-    lined = scores(LinerPolicy(), (8, 20))  # the paper's map 30 and 300 steps
+    lined, walks = scores(LinerPolicy(), (8, 20))  # the paper's map 30 and 300 steps
     assert (lined > -0.2 * 100).all(), lined  # +1 for the line within 100 steps, every episode
-    assert np.allclose(scores(RandomPolicy(), (8, 9)), -60.0)  # 300 steps at -0.2, no line
+    assert walks == [0.0] * 13  # a fleet in line has nothing left to walk
+    lost, walks = scores(RandomPolicy(), (8, 9))
+    assert np.allclose(lost, -60.0)  # 300 steps at -0.2, no line
+    assert all(walk > 1 for walk in walks), walks  # scattered: cells from any line
     with pytest.raises(ValueError, match="queue"):
         evaluate("magent/pursuit", LinerPolicy(), (3, 3), (0, 0), 1, 0, {"map_size": 10})
     with pytest.raises(ValueError, match="inner walls"):

@@ -42,6 +42,10 @@ class CellResult:
     goal_per_agent: float = 0.0
     """surround only: minus the steps an agent ends next to the target, averaged over agents
     and episodes (the paper's Table V "goal score", its "average loss score of each agent")."""
+    line_walk: float = 0.0
+    """magent/queue only: the cells an agent still had to walk to the nearest line when the
+    episode ended (0 once lined up), averaged over agents and episodes: how near a fleet that
+    scores the same −60 came."""
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False, repr=False)
     """Each episode's average agent score, in episode order (for paired comparisons)."""
 
@@ -73,6 +77,7 @@ def run_cell(
         _, _, done = env.step(policy.act(env))
     per_agent = env.episode_return.sum(axis=1) / agents
     goal = env.adjacent_steps.sum(axis=1) / -agents if env_name == "arena/surround" else 0.0
+    walk = env.line_walk().sum(axis=1) / agents if env_name == "magent/queue" else 0.0
     return CellResult(
         agents,
         obstacles,
@@ -80,6 +85,7 @@ def run_cell(
         float(per_agent.mean()),
         float(env.target_score.mean()),
         float(np.mean(goal)),
+        float(np.mean(walk)),
         per_agent,
     )
 
@@ -145,11 +151,30 @@ def format_agents_table(results: list[CellResult], title: str) -> str:
     return "\n".join(lines)
 
 
+def format_walk_table(results: list[CellResult], title: str) -> str:
+    """Markdown table for queue: per agent count, the cells an agent still had to walk to the
+    nearest line at the episode's end."""
+    lines = [f"**{title}** (cells per agent at the episode's end; 0: lined up)", ""]
+    lines += ["| agents | walk |", "|---|---|"]
+    for n in sorted({r.agents for r in results}):
+        walk = np.mean([r.line_walk for r in results if r.agents == n])
+        lines.append(f"| {n} | {walk:.2f} |")
+    return "\n".join(lines)
+
+
 def write_csv(results: list[CellResult], path: Path) -> None:
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(
-            ["agents", "obstacles", "episodes", "agent_score", "target_score", "goal_per_agent"]
+            [
+                "agents",
+                "obstacles",
+                "episodes",
+                "agent_score",
+                "target_score",
+                "goal_per_agent",
+                "line_walk",
+            ]
         )
         for r in results:
             writer.writerow(
@@ -160,6 +185,7 @@ def write_csv(results: list[CellResult], path: Path) -> None:
                     f"{r.agent_score:.4f}",
                     f"{r.target_score:.4f}",
                     f"{r.goal_per_agent:.4f}",
+                    f"{r.line_walk:.4f}",
                 ]
             )
 
@@ -647,6 +673,9 @@ def main(argv: list[str] | None = None) -> int:
             print()
             title = f"{env_name}, {label}: goal score per agent (the paper's Table V, lower half)"
             print(format_table(results, "goal_per_agent", title))
+        if env_name == "magent/queue":
+            print()
+            print(format_walk_table(results, f"{env_name}, {label}: walk to the nearest line"))
         print()
         if env_name == "arena/hidden_goal":
             config = make_vec(env_name, batch=1, agents=agents[1], obstacles=0).config

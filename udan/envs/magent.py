@@ -564,14 +564,19 @@ class QueueEnv(MagentEnv):
         along); ``d`` is this agent's L1 distance to its cell there. It ignores that agents
         block each other, so it is a lower bound on the moves left, never a plan. Training's
         reward shaping (``udan-train --shaping``) reads it; the task's rewards never do."""
+        cost = float(self.agent_attrs["step_reward"])
+        return {name: cost * walk for name, walk in self.line_walk().items()}
+
+    def line_walk(self) -> dict[str, float]:
+        """Each engine-held agent's L1 distance to its cell in the nearest line (see
+        :meth:`potential`)."""
         cells = self.agent_cells()
         if not cells:
             return {}
         xy = np.array(list(cells.values()), dtype=np.int64)
         column, row = line_distances(xy, self.map_size), line_distances(xy[:, ::-1], self.map_size)
         best = row if row.sum() < column.sum() else column
-        cost = float(self.agent_attrs["step_reward"])
-        return dict(zip(cells, (cost * best).tolist(), strict=True))
+        return dict(zip(cells, best.astype(float).tolist(), strict=True))
 
     def _reward_rules(self, cfg: gw.Config, group: int, opp: int | None) -> None:
         everyone = gw.AgentSymbol(group, index="all")
@@ -746,9 +751,16 @@ class MagentBatch:
     def potential(self) -> np.ndarray:
         """Every slot's :meth:`MagentEnv.potential` (B, N); absent slots and episodes that are
         over are 0 (a terminal state's potential, so shaping stays policy-invariant)."""
+        return self._per_slot("potential")
+
+    def line_walk(self) -> np.ndarray:
+        """Queue: every slot's :meth:`QueueEnv.line_walk` (B, N), 0 where absent or over."""
+        return self._per_slot("line_walk")
+
+    def _per_slot(self, method: str) -> np.ndarray:
         out = np.zeros((self.batch, self.slots), dtype=np.float32)
         for b in np.flatnonzero(~self.over):
-            for name, value in self.envs[b].potential().items():
+            for name, value in getattr(self.envs[b], method)().items():
                 out[b, self._names.index(name)] = value
         return np.where(self.present, out, 0.0).astype(np.float32)
 
