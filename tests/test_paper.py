@@ -160,6 +160,24 @@ def test_a_committed_magent_model_gets_its_row_and_curves(tmp_path):
     _a_try_on_its_own_map_is_played_there(text, models)
     _the_seeds_table_is_each_seed_played_alone(text, models)
     _a_try_is_set_against_the_baselines_on_its_task(text, models)
+    _the_queue_walk_is_each_policy_s(text, models)
+
+
+def _the_queue_walk_is_each_policy_s(text: str, models: Path) -> None:
+    """Queue's walk table gives each policy's cells left to the nearest line, as udan-eval
+    measures them on the same episodes (10 per N)."""
+    from udan.policies import LinerPolicy
+
+    def walk(policy) -> str:
+        options = {"map_size": 8, "max_steps": 12}
+        cells = evaluate("magent/queue", policy, (1, 3), (0, 0), 10, 0, options)
+        return f"{np.mean([c.line_walk for c in cells]):.2f} |"
+
+    table = text[text.index("**queue: how near the fleet came to a line**") :].split("\n\n")[1]
+    rows = dict(line.rsplit(" | ", 1) for line in table.splitlines()[2:])
+    model, _ = load_model(models / QUEUE_VDN / "checkpoint.pt")
+    assert rows["| VDN"] == walk(CheckpointPolicy(model))
+    assert rows["| scripted liner (no learning, no messages)"] == walk(LinerPolicy(0))
 
 
 def _a_try_on_its_own_map_is_played_there(text: str, models: Path) -> None:

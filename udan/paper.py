@@ -163,8 +163,26 @@ MAGENT_TRIES = {
             "baselines/magent_pursuit_iql/map30",
             "iql",
         ),
+        *(
+            (
+                f"IQL, the same, trained at N = {n} (a deviation)",
+                f"baselines/magent_pursuit_iql/map30_n{n}",
+                "iql",
+            )
+            for n in (10, 20)
+        ),
     ),
-    "queue": (("UDAN, small fleets in training (a deviation)", "magent_queue/agents2_20", "udan"),),
+    "queue": (
+        ("UDAN, small fleets in training (a deviation)", "magent_queue/agents2_20", "udan"),
+        *(
+            (f"{label}, shaped toward the nearest line (a deviation)", folder, algo)
+            for label, folder, algo in (
+                ("UDAN", "magent_queue/shaped", "udan"),
+                ("QMIX", "baselines/magent_queue_qmix/shaped", "qmix"),
+                ("VDN", "baselines/magent_queue_vdn/shaped", "vdn"),
+            )
+        ),
+    ),
 }
 #: MAgent scenario -> (label, folder, the paper's algorithm key in TABLE_II) of its models.
 MAGENT = {
@@ -603,6 +621,10 @@ def _pooled(results: list[CellResult]) -> str:
     return f"{mean:.2f} [{mean - half:.2f}, {mean + half:.2f}]"
 
 
+def _walk_row(label: str, results: list[CellResult]) -> str:
+    return f"| {label} | {np.mean([r.line_walk for r in results]):.2f} |"
+
+
 def _task(loaded: Loaded) -> str:
     """The task a MAgent model was trained on, in words: "100×100 map, 300 steps"."""
     env, agents = loaded.checkpoint["env"], loaded.trained_agents
@@ -720,7 +742,7 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         "| scenario | policy | trained on N | tested on N | ours [95 % CI] | paper (Table II) |",
         "|---|---|---|---|---|---|",
     ]
-    everything, curves, shuffles, seed_tables = [], [], [], []
+    everything, curves, shuffles, seed_tables, walks = [], [], [], [], []
     for scenario, entries in MAGENT.items():
         loaded = load_models(settings.models, entries)
         udan = loaded["UDAN"]
@@ -745,6 +767,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
                 f"| {scenario} | {label} | {model.trained_agents} | {tested} | "
                 f"{_pooled(results)} | {here} |"
             )
+            if scenario == "queue":
+                walks.append(_walk_row(label, results))
             seeds = _seeds(settings.models, label, folder)
             for task_of in (None, udan) if elsewhere else (None,):
                 played = [
@@ -786,6 +810,8 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
             out.append(
                 f"| {scenario} | {label} | — | {udan.trained_agents} | {_pooled(results)} | — |"
             )
+            if scenario == "queue":
+                walks.append(_walk_row(label, results))
         curves += [e for e in entries if loaded[e[0]] is not None] + seed_curves
         if any(len(learner.runs) > 1 for learner in per_seed.values()):
             seed_tables += ["", _seeds_table(scenario, per_seed, settings)]
@@ -800,6 +826,16 @@ def magent_section(settings: Settings) -> tuple[str, list[Loaded]]:
         settings.figures / "fig5_curves.png",
         lambda run: scenario.get(run) or scenario[run.parent],  # a seed<k>/ under its first
     )
+    if walks:
+        out += [
+            "",
+            "**queue: how near the fleet came to a line** (cells an agent still had to walk to "
+            "the nearest line when the episode ended, mean over N; 0: lined up)",
+            "",
+            "| policy | walk |",
+            "|---|---|",
+            *walks,
+        ]
     out += shuffles + seed_tables
     out += [
         "",
