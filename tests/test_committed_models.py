@@ -16,7 +16,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum``, ``magent_pursuit/map30_sum15`` and its second training seed
 ``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
-``seed2``: at 065d8a3).
+``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
+``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -124,6 +125,14 @@ BEFORE = {
         "73608d60daac8cb9f3063d9f0619f9debf7718451d90f5f8d8508d916eb18c44",
         "d1f4af7b53af565925b72432f0067398f589874a32e95f691f4d1e8101991c93",
     ),
+    "baselines/magent_queue_qmix/shaped": (
+        "cb8aa389fab1f4d9823bf8d6d8d04b2560219227d7756031f8e106fe62d24ff1",
+        "5eedc6805c52ad14277372dd3c964aafd5f57f431cb7bc2355eb506368b4b111",
+    ),
+    "baselines/magent_queue_vdn/shaped": (
+        "b5ad378514e99895a700b08f6f8e6a5de958d2fbeeb40208f56b8525a4c1e933",
+        "70c5febac27a044b59cabd6335798a7b54edf179b8b138fc4d395c9f169fea95",
+    ),
     "baselines/magent_tiger_qmix": (
         "d30bd04a98043abef895e0ff86993cb56eba29eea5bf015c1b62b46031188137",
         "d3949d5f88dffd85346f8fa4f8a89b93f7d950e62b28bab66eab88053ddc42cb",
@@ -191,6 +200,10 @@ BEFORE = {
     "magent_queue/agents2_20": (
         "c10279ff66498ec6164e44627c5565f0f32a95bfc81122d99ebad1684bb26667",
         "2c4dae05c074ac962cc91edf326bb9ec6b472707fa018d6d9221330418899414",
+    ),
+    "magent_queue/shaped": (
+        "86fd320fcafe9f6b3f373d7e46972c71dc1e1ade25dce00f89abfa9d200ba6f1",
+        "71b463b18a1addbd17daec39815ec3858c5101426608d1803a691aa900ba8c09",
     ),
     "magent_tiger": (
         "d6ab7da2424be1df56d52ceb79d46452c041947cbb464e17de54815df11dec39",
