@@ -347,12 +347,18 @@ def test_queue_potential_finds_the_cheapest_line_of_all():
         assert walk == pytest.approx(brute)
 
 
-def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_return():
+@pytest.mark.parametrize(
+    ("env", "agents", "map_size"),
+    [("magent/pursuit", "2-4", 12), ("magent/queue", "1-3", 5)],  # queue: some episodes line up
+)
+def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_return(
+    env, agents, map_size
+):
     """Same seed and actions, with and without shaping: the rewards differ by c(γΦ' − Φ) for
     the agents that acted, the logged return does not differ, and per episode the shaping
-    telescopes to c(γ^T Φ_T − Φ_0) discounted."""
+    telescopes to c(γ^T Φ_T − Φ_0) discounted (Φ_T = 0 for an episode that ended early)."""
     c, gamma, steps = 0.5, 0.9, 20
-    cfg = TrainConfig(env="magent/pursuit", agents="2-4", map_size=12, max_steps=steps,
+    cfg = TrainConfig(env=env, agents=agents, map_size=map_size, max_steps=steps,
                       shaping=c, gamma=gamma, obstacles="0")  # fmt: skip
     shaped = training_batch(cfg, 3, 7)
     plain = training_batch(dataclasses.replace(cfg, shaping=0.0), 3, 7)
@@ -375,6 +381,8 @@ def test_shaping_adds_exactly_the_potential_difference_and_leaves_the_task_retur
     np.testing.assert_allclose(discounted, c * (gamma**steps * phi - phi0), atol=1e-5)
     assert (shaped.episode_return == plain.episode_return).all()
     assert discounted.any()
+    if env == "magent/queue":
+        assert shaped.over.any()  # some fleet lined up: its Φ is 0 from then on
 
 
 def test_mixer_init_sum_starts_udan_s_mixer_as_vdn_s_sum_and_small_as_before():

@@ -562,8 +562,9 @@ class QueueEnv(MagentEnv):
         The nearest line is the column (or row) and first cell that the fleet, sorted along it,
         reaches with the fewest moves in all (median across, median of the sorted offsets
         along); ``d`` is this agent's L1 distance to its cell there. It ignores that agents
-        block each other, so it is a lower bound on the moves left, never a plan. Training's
-        reward shaping (``udan-train --shaping``) reads it; the task's rewards never do."""
+        block each other, so the fleet's total is a lower bound on its moves left, never a
+        plan (one agent's ``d`` can jump when the nearest line changes). Training's reward
+        shaping (``udan-train --shaping``) reads it; the task's rewards never do."""
         cost = float(self.agent_attrs["step_reward"])
         return {name: cost * walk for name, walk in self.line_walk().items()}
 
