@@ -17,7 +17,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
-``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc).
+``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc; IQL trained at N = 10 on the 30×30
+schedule ``baselines/magent_pursuit_iql/map30_n10``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -96,6 +97,10 @@ BEFORE = {
     "baselines/magent_pursuit_iql/map30": (
         "116a6e8614810d97b0c779cdcaa7189c440246e784e690b89b64d2ff701bb2f2",
         "d44af6a97bfddc4c4a567ac35e683f8bd63f3b3e4459fcd8f0dc8e21e2ed442e",
+    ),
+    "baselines/magent_pursuit_iql/map30_n10": (
+        "8247346fdf436bc4c54217e7c05e4c145782edfde64b9e0bd342eff5b2334990",
+        "4e9d303cc68e9426af51ccdac6fde1997676591a7e3e1d76597845ae4208db32",
     ),
     "baselines/magent_pursuit_iql/map30/seed1": (
         "36cc8d6cacfa123c8819c3daa38177bb4ec97a2a2563ddfa88d5e07ebac2709b",
