@@ -17,8 +17,9 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
-``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc; IQL trained at N = 10 on the 30×30
-schedule ``baselines/magent_pursuit_iql/map30_n10``: at 065d8a3).
+``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc;
+IQL trained at N = 10 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``: at
+065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
