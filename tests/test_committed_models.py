@@ -18,8 +18,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
 ``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc;
-IQL trained at N = 10 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``: at
-065d8a3).
+IQL trained at N = 10 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10`` and
+UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -218,6 +218,10 @@ BEFORE = {
     "magent_tiger/seed1": (
         "2d5565fb483d8ea4525a7a9229677d1038ad34b6e22c8d5152e1d7f7b9817597",
         "2e8df99352ab1f9ef996b21f8f7df2630ac40633789a312a20581e6aa7144737",
+    ),
+    "magent_tiger/seed2": (
+        "95cd32f75af82d3c582e841a97510d7d14525d1890377041ee1cf7d5a16daa00",
+        "e98ce55df12df866a4b2478eccf759e618550e65c9fca8b7a58f4ad80bcb994a",
     ),
 }
 
