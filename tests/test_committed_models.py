@@ -18,8 +18,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
 ``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc;
-IQL trained at N = 10 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10`` and
-UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
+IQL trained at N = 10 and 20 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``
+and ``map30_n20``, and UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
 weights in float64 (since find_water's retraining): folded in float32, their last bits, and so
 the digests, depended on the machine's BLAS kernels (two machines of this project disagreed)."""
@@ -102,6 +102,10 @@ BEFORE = {
     "baselines/magent_pursuit_iql/map30_n10": (
         "8247346fdf436bc4c54217e7c05e4c145782edfde64b9e0bd342eff5b2334990",
         "4e9d303cc68e9426af51ccdac6fde1997676591a7e3e1d76597845ae4208db32",
+    ),
+    "baselines/magent_pursuit_iql/map30_n20": (
+        "14509ce0143993f71575b65b48671e7f14bcfeccd9b9d5cc94dd6e34759662d1",
+        "526e546536996d4b3954d9f7782dc0e631664e0b70b90fa582848dbe064dd97c",
     ),
     "baselines/magent_pursuit_iql/map30/seed1": (
         "36cc8d6cacfa123c8819c3daa38177bb4ec97a2a2563ddfa88d5e07ebac2709b",
