@@ -17,7 +17,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
-``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``: at 4887bcc;
+``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``, and QMIX
+shaped at the full budget ``baselines/magent_queue_qmix/shaped_2m``: at 4887bcc;
 IQL trained at N = 10 and 20 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``
 and ``map30_n20``, and UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
@@ -138,6 +139,10 @@ BEFORE = {
     "baselines/magent_queue_qmix/shaped": (
         "cb8aa389fab1f4d9823bf8d6d8d04b2560219227d7756031f8e106fe62d24ff1",
         "5eedc6805c52ad14277372dd3c964aafd5f57f431cb7bc2355eb506368b4b111",
+    ),
+    "baselines/magent_queue_qmix/shaped_2m": (
+        "5e44327ced5217a5d9733b9b6189fb819976105c9e4532350a37049c4531d1b3",
+        "330bcef04f5f1266c458173de7ae3c6f64933f45c8a40e1cd68a484037dc27b6",
     ),
     "baselines/magent_queue_vdn/shaped": (
         "b5ad378514e99895a700b08f6f8e6a5de958d2fbeeb40208f56b8525a4c1e933",

@@ -182,6 +182,13 @@ MAGENT_TRIES = {
                 ("VDN", "baselines/magent_queue_vdn/shaped", "vdn"),
             )
         ),
+        *(
+            (f"{label}, the same, the full 2·10⁶ steps (a deviation)", folder, algo)
+            for label, folder, algo in (
+                ("UDAN", "magent_queue/shaped_2m", "udan"),
+                ("QMIX", "baselines/magent_queue_qmix/shaped_2m", "qmix"),
+            )
+        ),
     ),
 }
 #: MAgent scenario -> (label, folder, the paper's algorithm key in TABLE_II) of its models.
