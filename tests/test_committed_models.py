@@ -18,7 +18,8 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
 ``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``, and QMIX
-shaped at the full budget ``baselines/magent_queue_qmix/shaped_2m``: at 4887bcc;
+and VDN shaped at the full budget ``baselines/magent_queue_qmix/shaped_2m`` and
+``baselines/magent_queue_vdn/shaped_2m``: at 4887bcc;
 IQL trained at N = 10 and 20 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``
 and ``map30_n20``, and UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
@@ -147,6 +148,10 @@ BEFORE = {
     "baselines/magent_queue_vdn/shaped": (
         "b5ad378514e99895a700b08f6f8e6a5de958d2fbeeb40208f56b8525a4c1e933",
         "70c5febac27a044b59cabd6335798a7b54edf179b8b138fc4d395c9f169fea95",
+    ),
+    "baselines/magent_queue_vdn/shaped_2m": (
+        "10d2b5bec0f86a23c7f589ba5896898e28f8dafe8078f3890b236715b3fa6d55",
+        "b5058624d2b06c835ca8f19dc680da539e4021bfc37f2d9e6556ceff55005829",
     ),
     "baselines/magent_tiger_qmix": (
         "d30bd04a98043abef895e0ff86993cb56eba29eea5bf015c1b62b46031188137",

@@ -187,6 +187,7 @@ MAGENT_TRIES = {
             for label, folder, algo in (
                 ("UDAN", "magent_queue/shaped_2m", "udan"),
                 ("QMIX", "baselines/magent_queue_qmix/shaped_2m", "qmix"),
+                ("VDN", "baselines/magent_queue_vdn/shaped_2m", "vdn"),
             )
         ),
     ),
