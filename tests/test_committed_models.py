@@ -17,9 +17,9 @@ on a 30×30 map ``baselines/magent_pursuit_iql/map30``, ``baselines/magent_pursu
 ``magent_pursuit/map30_sum15/seed1``: at 5dff52b; the further training seeds
 ``magent_pursuit/map30_sum15/seed2``, ``baselines/magent_pursuit_iql/map30/seed1`` and
 ``seed2``: at 065d8a3; the queue learners shaped toward the line ``magent_queue/shaped``,
-``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``, and QMIX
-and VDN shaped at the full budget ``baselines/magent_queue_qmix/shaped_2m`` and
-``baselines/magent_queue_vdn/shaped_2m``: at 4887bcc;
+``baselines/magent_queue_qmix/shaped`` and ``baselines/magent_queue_vdn/shaped``, and QMIX,
+VDN and UDAN shaped at the full budget ``baselines/magent_queue_qmix/shaped_2m``,
+``baselines/magent_queue_vdn/shaped_2m`` and ``magent_queue/shaped_2m``: at 4887bcc;
 IQL trained at N = 10 and 20 on the 30×30 schedule ``baselines/magent_pursuit_iql/map30_n10``
 and ``map30_n20``, and UDAN's third tiger seed ``magent_tiger/seed2``: at 065d8a3).
 Exports of UDAN models have the digests of the exporter that folds the leader attention's
@@ -224,6 +224,10 @@ BEFORE = {
     "magent_queue/shaped": (
         "86fd320fcafe9f6b3f373d7e46972c71dc1e1ade25dce00f89abfa9d200ba6f1",
         "71b463b18a1addbd17daec39815ec3858c5101426608d1803a691aa900ba8c09",
+    ),
+    "magent_queue/shaped_2m": (
+        "3b70bff3e43c6dd1085394ac59322e25e75e81fe02e91454979ab9e7862619cb",
+        "c4bb913b4ba26ad61451a12807d1e2af81de2424117b69be2c33cd1b09cf0cd5",
     ),
     "magent_tiger": (
         "d6ab7da2424be1df56d52ceb79d46452c041947cbb464e17de54815df11dec39",
