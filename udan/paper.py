@@ -175,19 +175,15 @@ MAGENT_TRIES = {
     "queue": (
         ("UDAN, small fleets in training (a deviation)", "magent_queue/agents2_20", "udan"),
         *(
-            (f"{label}, shaped toward the nearest line (a deviation)", folder, algo)
-            for label, folder, algo in (
-                ("UDAN", "magent_queue/shaped", "udan"),
-                ("QMIX", "baselines/magent_queue_qmix/shaped", "qmix"),
-                ("VDN", "baselines/magent_queue_vdn/shaped", "vdn"),
+            (f"{label}, {shaping} (a deviation)", f"{folder}/{subfolder}", algo)
+            for subfolder, shaping in (
+                ("shaped", "shaped toward the nearest line"),
+                ("shaped_2m", "the same, the full 2·10⁶ steps"),
             )
-        ),
-        *(
-            (f"{label}, the same, the full 2·10⁶ steps (a deviation)", folder, algo)
             for label, folder, algo in (
-                ("UDAN", "magent_queue/shaped_2m", "udan"),
-                ("QMIX", "baselines/magent_queue_qmix/shaped_2m", "qmix"),
-                ("VDN", "baselines/magent_queue_vdn/shaped_2m", "vdn"),
+                ("UDAN", "magent_queue", "udan"),
+                ("QMIX", "baselines/magent_queue_qmix", "qmix"),
+                ("VDN", "baselines/magent_queue_vdn", "vdn"),
             )
         ),
     ),
